@@ -1,0 +1,55 @@
+#!/usr/bin/env bash
+# Set up a virtual environment for thgs on a fresh machine.
+#
+#   bash scripts/setup.sh            # creates .venv (or $THGS_VENV) with every extra but [gpu]
+#   THGS_EXTRAS=dev bash scripts/setup.sh
+#
+# Steps: create the venv; install torch==2.13.0 first; pin it with scripts/constraints.txt in every
+# later pip call; build pycut-pursuit 0.1.3 from source against NumPy 2; install thgs (editable)
+# with its extras ([gpu] only where nvidia-smi finds a GPU). torchvision is never installed, and the
+# script fails if anything pulled it in. Idempotent: a second run with unchanged inputs does nothing.
+set -euo pipefail
+
+root=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
+venv=${THGS_VENV:-$root/.venv}
+python=${THGS_PYTHON:-python3}
+constraints=$root/scripts/constraints.txt
+extras=${THGS_EXTRAS:-models,viewer,demo,dev}
+if [[ -z ${THGS_EXTRAS:-} ]] && command -v nvidia-smi >/dev/null 2>&1 && nvidia-smi -L >/dev/null 2>&1; then
+  extras=$extras,gpu
+fi
+
+stamp=$venv/.thgs-setup
+inputs=$(cat "$root/pyproject.toml" "$constraints" "$root/scripts/setup.sh"; echo "extras=$extras")
+digest=$(printf '%s' "$inputs" | sha256sum | cut -d' ' -f1)
+if [[ -x $venv/bin/python && -f $stamp && $(cat "$stamp") == "$digest" ]]; then
+  echo "setup: $venv is up to date"
+  exit 0
+fi
+
+start=$SECONDS
+if [[ ! -x $venv/bin/python ]]; then
+  echo "setup: creating $venv"
+  "$python" -m venv "$venv"
+fi
+pip=("$venv/bin/python" -m pip --disable-pip-version-check)
+
+echo "setup: torch 2.13.0 (CPU build)"
+"${pip[@]}" install --quiet torch==2.13.0
+echo "setup: build tools and NumPy 2"
+"${pip[@]}" install --quiet -c "$constraints" "numpy>=2" "setuptools>=61" wheel
+if ! "$venv/bin/python" -c "import cp_d0_dist" >/dev/null 2>&1 \
+   && ! "$venv/bin/python" -c "from pycut_pursuit import cp_d0_dist" >/dev/null 2>&1; then
+  echo "setup: building pycut-pursuit 0.1.3 from source (about 2 minutes)"
+  "${pip[@]}" install --quiet -c "$constraints" --no-build-isolation --no-binary pycut-pursuit pycut-pursuit==0.1.3
+fi
+echo "setup: thgs[$extras]"
+"${pip[@]}" install --quiet -c "$constraints" -e "$root[$extras]"
+
+if "$venv/bin/python" -c "import importlib.util, sys; sys.exit(importlib.util.find_spec('torchvision') is None)"; then
+  echo "setup: torchvision got installed; it breaks transformers with the CPU torch. Remove what pulled it in." >&2
+  exit 1
+fi
+"${pip[@]}" check
+echo "$digest" > "$stamp"
+echo "setup: done in $((SECONDS - start)) s"

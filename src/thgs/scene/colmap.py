@@ -1,0 +1,160 @@
+"""COLMAP sparse models (``sparse/0``, binary or text), read and written through pycolmap.
+
+Only undistorted pinhole cameras are accepted (``PINHOLE``, ``SIMPLE_PINHOLE``): Gaussian
+splatting trains on undistorted images (``colmap image_undistorter``). COLMAP's camera axes and
+pixel convention (pixel centres at integer + 0.5) are thgs's own, so poses and intrinsics are taken
+as they are.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from thgs.errors import InputError
+from thgs.scene.cameras import Cameras
+from thgs.scene.images import fit_to_images
+
+__all__ = ["read_colmap", "write_colmap"]
+
+logger = logging.getLogger(__name__)
+
+_SUPPORTED_MODELS = ("PINHOLE", "SIMPLE_PINHOLE")
+
+
+def _model_files(sparse_dir: Path) -> str:
+    for ext in (".bin", ".txt"):
+        if all((sparse_dir / f"{stem}{ext}").is_file() for stem in ("cameras", "images", "points3D")):
+            return "binary" if ext == ".bin" else "text"
+    raise InputError(
+        sparse_dir,
+        "not a COLMAP model: expected cameras, images and points3D as .bin or .txt files",
+    )
+
+
+def read_colmap(
+    sparse_dir: str | os.PathLike[str],
+    *,
+    images_dir: str | os.PathLike[str] | None = None,
+    scale: float = 1.0,
+) -> Cameras:
+    """Read the registered images of a COLMAP model as cameras.
+
+    Args:
+        sparse_dir: the model folder (``…/sparse/0``) with ``cameras``, ``images`` and ``points3D``
+            as ``.bin`` or ``.txt``.
+        images_dir: if given, every image must be there (names as in COLMAP, relative to it) and
+            measure the camera size times ``scale`` within a pixel; the cameras then take the
+            images' exact sizes (see :func:`thgs.scene.images.fit_to_images`).
+        scale: image size / COLMAP camera size, e.g. 0.25 for images downscaled 4× (3DGS's
+            ``images_4``). Never guessed from the images.
+
+    Returns:
+        :class:`Cameras`, one per registered image, sorted by image name (as the 3DGS loaders do).
+
+    Raises:
+        InputError: missing or unreadable model files, a camera model other than PINHOLE or
+            SIMPLE_PINHOLE (undistort first), no registered image, or images that do not match.
+    """
+    import pycolmap
+
+    sparse_dir = Path(sparse_dir)
+    if not sparse_dir.is_dir():
+        raise InputError(sparse_dir, "COLMAP model folder not found")
+    kind = _model_files(sparse_dir)
+    try:
+        reconstruction = pycolmap.Reconstruction(str(sparse_dir))
+    except Exception as exc:  # pycolmap raises ValueError, IndexError, RuntimeError …
+        raise InputError(
+            sparse_dir, f"cannot read the COLMAP {kind} model ({type(exc).__name__}: {exc})"
+        ) from exc
+
+    images = sorted(
+        (image for image in reconstruction.images.values() if image.has_pose),
+        key=lambda image: image.name,
+    )
+    unregistered = reconstruction.num_images() - len(images)
+    if unregistered:
+        logger.info("%s: skipping %d unregistered images", sparse_dir, unregistered)
+    if not images:
+        raise InputError(sparse_dir, "the COLMAP model has no registered image")
+    viewmats, Ks, widths, heights, names = [], [], [], [], []
+    for image in images:
+        camera = reconstruction.cameras[image.camera_id]
+        model = camera.model.name
+        if model not in _SUPPORTED_MODELS:
+            raise InputError(
+                sparse_dir,
+                f"camera {image.camera_id} (image {image.name!r}) uses the {model} model; thgs "
+                f"needs undistorted {' or '.join(_SUPPORTED_MODELS)} cameras: run "
+                "`colmap image_undistorter` and use its sparse model and images",
+            )
+        params = np.asarray(camera.params, dtype=np.float64)
+        fx, fy, cx, cy = (params[0], params[0], *params[1:3]) if model == "SIMPLE_PINHOLE" else params
+        viewmat = np.eye(4)
+        viewmat[:3, :] = image.cam_from_world().matrix()
+        viewmats.append(viewmat)
+        Ks.append([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+        widths.append(camera.width)
+        heights.append(camera.height)
+        names.append(image.name)
+    cameras = Cameras(
+        viewmats=torch.tensor(np.stack(viewmats), dtype=torch.float64),
+        Ks=torch.tensor(Ks, dtype=torch.float64),
+        widths=torch.tensor(widths, dtype=torch.int64),
+        heights=torch.tensor(heights, dtype=torch.int64),
+        names=tuple(names),
+    ).check(source=str(sparse_dir))
+    if images_dir is not None:
+        return fit_to_images(cameras, images_dir, scale=scale)
+    return cameras if scale == 1.0 else cameras.scaled(scale)
+
+
+def write_colmap(
+    sparse_dir: str | os.PathLike[str], cameras: Cameras, *, text: bool = False
+) -> None:
+    """Write ``cameras`` as a COLMAP model: one PINHOLE camera per image, no 3D points.
+
+    Image ``i`` gets image and camera id ``i + 1`` and the name ``cameras.names[i]``. The files
+    are written to a temporary folder beside ``sparse_dir`` and then moved in, one rename each.
+
+    Raises:
+        InputError: the cameras fail :meth:`Cameras.check` or have a skewed K.
+    """
+    import pycolmap
+
+    sparse_dir = Path(sparse_dir)
+    cameras.check(source=f"cameras to write to {sparse_dir}")
+    if bool((cameras.Ks[:, 0, 1] != 0).any()):
+        raise InputError(sparse_dir, "COLMAP PINHOLE cameras cannot have skew (K[0, 1] != 0)")
+    reconstruction = pycolmap.Reconstruction()
+    for i in range(len(cameras)):
+        K = cameras.Ks[i].numpy()
+        camera = pycolmap.Camera(
+            model="PINHOLE",
+            width=int(cameras.widths[i]),
+            height=int(cameras.heights[i]),
+            params=[K[0, 0], K[1, 1], K[0, 2], K[1, 2]],
+            camera_id=i + 1,
+        )
+        reconstruction.add_camera_with_trivial_rig(camera)
+        image = pycolmap.Image(name=cameras.names[i], camera_id=i + 1, image_id=i + 1)
+        pose = pycolmap.Rigid3d(cameras.viewmats[i, :3, :].numpy())
+        reconstruction.add_image_with_trivial_frame(image, pose)
+    sparse_dir.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=".colmap-", dir=sparse_dir.parent))
+    try:
+        if text:
+            reconstruction.write_text(str(staging))
+        else:
+            reconstruction.write_binary(str(staging))
+        for file in sorted(staging.iterdir()):
+            os.replace(file, sparse_dir / file.name)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)

@@ -1,0 +1,226 @@
+"""Recognise a scene on disk (a trained model folder, or a PLY plus a source) and load it."""
+
+from __future__ import annotations
+
+import logging
+import os
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+from thgs.errors import InputError
+from thgs.scene._json import load_json
+from thgs.scene.cameras import Cameras
+from thgs.scene.cameras_json import read_cameras_json
+from thgs.scene.colmap import read_colmap
+from thgs.scene.gaussians import Gaussians
+from thgs.scene.images import find_images, fit_to_images
+from thgs.scene.ply import read_ply
+from thgs.scene.transforms_json import read_transforms_json
+
+__all__ = ["Scene", "load_cameras", "load_scene"]
+
+logger = logging.getLogger(__name__)
+
+_ITERATION = re.compile(r"^iteration_(\d+)$")
+
+
+@dataclass(frozen=True, eq=False)
+class Scene:
+    """Gaussians, their cameras (if any were found) and where each came from.
+
+    Attributes:
+        gaussians: the scene's Gaussians.
+        cameras: its cameras at the resolution of the images (when they were checked) or of the
+            camera file, or None when only a PLY was given.
+        ply_path: the PLY the Gaussians were read from.
+        cameras_path: the camera file or COLMAP folder, or None.
+        found: what was recognised, one line each, in the order it was looked at.
+    """
+
+    gaussians: Gaussians
+    cameras: Cameras | None
+    ply_path: Path
+    cameras_path: Path | None
+    found: tuple[str, ...]
+
+
+def _model_ply(model_dir: Path, iteration: int | None) -> tuple[Path, int]:
+    point_cloud = model_dir / "point_cloud"
+    iterations = sorted(
+        int(m.group(1))
+        for child in (point_cloud.iterdir() if point_cloud.is_dir() else [])
+        if (m := _ITERATION.match(child.name)) and (child / "point_cloud.ply").is_file()
+    )
+    if not iterations:
+        raise InputError(
+            model_dir,
+            "not a trained model folder: no point_cloud/iteration_*/point_cloud.ply (give the "
+            "PLY file itself, or the folder the 3DGS/2DGS trainer wrote)",
+        )
+    if iteration is None:
+        iteration = iterations[-1]
+    elif iteration not in iterations:
+        raise InputError(model_dir, f"no iteration {iteration}; the folder has {iterations}")
+    return point_cloud / f"iteration_{iteration}" / "point_cloud.ply", iteration
+
+
+def load_cameras(
+    source: str | os.PathLike[str],
+    *,
+    images: str | None = None,
+    scale: float = 1.0,
+    undo_applied_transform: bool = False,
+) -> tuple[Cameras, Path, list[str]]:
+    """Read the cameras of a source: a camera file, or a folder holding one.
+
+    A folder is searched, in this order, for a COLMAP model in the folder itself, in ``sparse/0/``
+    or in ``sparse/``, then for ``transforms.json`` and ``cameras.json``. A file is read by its content: a JSON list is a
+    3DGS ``cameras.json``, a JSON object with ``frames`` a ``transforms.json``.
+
+    Images: for COLMAP and cameras.json, the folder ``source/<images>`` must hold every camera's
+    image (``images=None`` means ``images/``, checked only when present; a folder named
+    explicitly must exist); for transforms.json the images are where ``file_path`` says and are
+    checked when any of them exists. Checked images fix the cameras' sizes (see
+    :func:`thgs.scene.images.fit_to_images`). ``scale`` is image size / camera-file size.
+
+    Returns:
+        ``(cameras, camera_path, found)`` with ``found`` lines describing what was recognised.
+
+    Raises:
+        InputError: nothing recognisable, or any reader's error.
+    """
+    source = Path(source)
+    found: list[str] = []
+    if source.is_dir():
+        camera_path = _find_cameras(source)
+    elif source.is_file():
+        camera_path = source
+    else:
+        raise InputError(source, "no such file or folder")
+
+    image_root: Path | None = None
+    if camera_path.is_dir():
+        cameras = read_colmap(camera_path)
+        found.append(f"COLMAP model {camera_path} ({len(cameras)} registered images)")
+        image_root = source / (images or "images")
+    else:
+        document = load_json(camera_path)
+        if isinstance(document, list):
+            cameras = read_cameras_json(camera_path)
+            found.append(f"3DGS cameras.json {camera_path} ({len(cameras)} cameras)")
+            if source.is_dir():
+                image_root = source / (images or "images")
+        elif isinstance(document, dict) and "frames" in document:
+            cameras = read_transforms_json(
+                camera_path, undo_applied_transform=undo_applied_transform
+            )
+            found.append(f"transforms.json {camera_path} ({len(cameras)} frames)")
+            if any(path is not None for path in find_images(cameras, camera_path.parent)):
+                image_root = camera_path.parent
+        else:
+            raise InputError(
+                camera_path, "neither a 3DGS cameras.json (a list) nor a transforms.json (frames)"
+            )
+
+    if images is not None and (image_root is None or not image_root.is_dir()):
+        raise InputError(
+            source / images, "image folder not found (images= names a folder inside the source)"
+        )
+    if image_root is not None and image_root.is_dir():
+        cameras = fit_to_images(cameras, image_root, scale=scale)
+        found.append(f"images {image_root} checked, {_size_range(cameras)}")
+    else:
+        if scale != 1.0:
+            cameras = cameras.scaled(scale)
+        found.append(f"images not checked (none found), {_size_range(cameras)} from the camera file")
+    return cameras, camera_path, found
+
+
+def _find_cameras(folder: Path) -> Path:
+    for candidate in (folder, folder / "sparse" / "0", folder / "sparse"):
+        if (candidate / "cameras.bin").is_file() or (candidate / "cameras.txt").is_file():
+            return candidate
+    for candidate in (folder / "transforms.json", folder / "cameras.json"):
+        if candidate.is_file():
+            return candidate
+    raise InputError(
+        folder,
+        "no cameras found: expected a COLMAP model (sparse/0/ or sparse/), transforms.json or "
+        "cameras.json",
+    )
+
+
+def _size_range(cameras: Cameras) -> str:
+    def span(values) -> str:
+        low, high = int(values.min()), int(values.max())
+        return str(low) if low == high else f"{low}-{high}"
+
+    return f"{span(cameras.widths)}×{span(cameras.heights)} px"
+
+
+def load_scene(
+    path: str | os.PathLike[str],
+    *,
+    source: str | os.PathLike[str] | None = None,
+    iteration: int | None = None,
+    images: str | None = None,
+    scale: float = 1.0,
+    undo_applied_transform: bool = False,
+) -> Scene:
+    """Load a scene from a trained model folder or a PLY file.
+
+    Args:
+        path: a 3DGS/2DGS model folder (``point_cloud/iteration_*/point_cloud.ply`` and usually
+            ``cameras.json``) or a ``.ply`` file.
+        source: where the cameras come from, overriding the model's ``cameras.json``: the
+            training data folder (COLMAP ``sparse/0`` + ``images/``, or ``transforms.json``) or a
+            camera file. See :func:`load_cameras`.
+        iteration: which ``iteration_*`` of a model folder; default the newest.
+        images: the image folder's name inside ``source`` (e.g. ``images_4``); default
+            ``images``, checked when present.
+        scale: image size / camera-file size (e.g. 0.25 with ``images_4``); never guessed.
+        undo_applied_transform: see :func:`thgs.scene.read_transforms_json`.
+
+    Returns:
+        a :class:`Scene`; it logs, and lists in ``found``, what it recognised.
+
+    Raises:
+        InputError: nothing recognisable at ``path`` or ``source``, or any reader's error.
+    """
+    path = Path(path)
+    found: list[str] = []
+    model_cameras: Path | None = None
+    if path.is_dir():
+        ply_path, chosen = _model_ply(path, iteration)
+        found.append(f"trained model folder {path}, iteration {chosen}")
+        if (path / "cameras.json").is_file():
+            model_cameras = path / "cameras.json"
+    elif path.is_file():
+        if path.suffix.lower() != ".ply":
+            raise InputError(path, "expected a .ply file or a trained model folder")
+        if iteration is not None:
+            raise InputError(path, "iteration is only meaningful for a model folder")
+        ply_path = path
+    else:
+        raise InputError(path, "no such file or folder")
+
+    gaussians = read_ply(ply_path)
+    found.append(
+        f"{len(gaussians):,} {gaussians.kind.upper()} Gaussians, SH degree "
+        f"{gaussians.sh_degree} in {ply_path}"
+    )
+    cameras: Cameras | None = None
+    cameras_path: Path | None = None
+    camera_source = source if source is not None else model_cameras
+    if camera_source is not None:
+        cameras, cameras_path, camera_found = load_cameras(
+            camera_source, images=images, scale=scale,
+            undo_applied_transform=undo_applied_transform,
+        )
+        found.extend(camera_found)
+    else:
+        found.append("no cameras (pass a source with COLMAP, transforms.json or cameras.json)")
+    for line in found:
+        logger.info("%s", line)
+    return Scene(gaussians, cameras, ply_path, cameras_path, tuple(found))

@@ -1,0 +1,204 @@
+"""``transforms.json`` camera files of nerfstudio and instant-ngp (and the NeRF Blender scenes).
+
+Layout::
+
+    {"camera_model": "OPENCV",                     # optional; distortion must be zero
+     "fl_x": …, "fl_y": …, "cx": …, "cy": …, "w": …, "h": …,   # pixels, global (optional)
+     "camera_angle_x": …,                          # instant-ngp / Blender: horizontal FoV (rad)
+     "frames": [{"file_path": "images/frame_00001.png",
+                 "transform_matrix": [[…4×4…]],    # camera→world, OpenGL axes (x right, y up, z back)
+                 "fl_x": …, …}]}                   # per-frame intrinsics override global ones
+
+Missing values are completed as the 3DGS Blender loader does: ``fl_x`` from ``camera_angle_x``,
+``fl_y = fl_x`` unless ``fl_y`` or ``camera_angle_y`` is given, ``cx, cy`` at the image centre,
+``w, h`` from the image file. Poses are converted once to world→camera OpenCV axes.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from PIL import Image, UnidentifiedImageError
+
+from thgs._atomic import atomic_output
+from thgs.errors import InputError
+from thgs.scene._json import get_matrix, get_number, load_json
+from thgs.scene.cameras import Cameras
+from thgs.scene.images import image_candidates
+
+__all__ = ["read_transforms_json", "write_transforms_json"]
+
+logger = logging.getLogger(__name__)
+
+OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
+"""Flips the camera's y and z axes: OpenGL (x right, y up, z back) ↔ OpenCV (x right, y down, z forward)."""
+
+_INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x", "camera_angle_y",
+                   "k1", "k2", "k3", "k4", "p1", "p2", "camera_model")
+_DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
+_PINHOLE_MODELS = ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE")
+
+
+def _image_size(root: Path, file_path: str, path: Path, where: str) -> tuple[int, int]:
+    candidates = image_candidates(root, file_path)
+    found = next((candidate for candidate in candidates if candidate.is_file()), None)
+    if found is None:
+        raise InputError(
+            path, f"{where} gives no image size (w, h) and its image {candidates[0]} does not exist"
+        )
+    try:
+        with Image.open(found) as opened:
+            return opened.size
+    except (OSError, UnidentifiedImageError) as exc:
+        raise InputError(found, f"not a readable image ({exc})") from exc
+
+
+def _intrinsics(values: dict[str, Any], root: Path, file_path: str, path: Path,
+                where: str) -> tuple[list[list[float]], int, int]:
+    model = values.get("camera_model")
+    if model is not None and model not in _PINHOLE_MODELS:
+        raise InputError(
+            path, f"{where}: camera_model {model!r} is not a pinhole model; undistort the images "
+            "first (thgs needs undistorted pinhole cameras)",
+        )
+    for key in _DISTORTION_KEYS:
+        if key in values and get_number(values, key, path, where) != 0.0:
+            raise InputError(
+                path, f"{where}: distortion {key} = {values[key]}; thgs needs undistorted images "
+                "(undistort them and write zero distortion)",
+            )
+    if "w" in values and "h" in values:
+        width, height = get_number(values, "w", path, where), get_number(values, "h", path, where)
+        if width != int(width) or height != int(height) or width <= 0 or height <= 0:
+            raise InputError(path, f"{where}: size {width}×{height} is not positive integers")
+        width, height = int(width), int(height)
+    else:
+        width, height = _image_size(root, file_path, path, where)
+    if "fl_x" in values:
+        fx = get_number(values, "fl_x", path, where)
+    elif "camera_angle_x" in values:
+        fx = 0.5 * width / math.tan(0.5 * get_number(values, "camera_angle_x", path, where))
+    else:
+        raise InputError(path, f"{where} has neither 'fl_x' nor 'camera_angle_x'")
+    if "fl_y" in values:
+        fy = get_number(values, "fl_y", path, where)
+    elif "camera_angle_y" in values:
+        fy = 0.5 * height / math.tan(0.5 * get_number(values, "camera_angle_y", path, where))
+    else:
+        fy = fx
+    cx = get_number(values, "cx", path, where) if "cx" in values else width / 2
+    cy = get_number(values, "cy", path, where) if "cy" in values else height / 2
+    return [[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], width, height
+
+
+def read_transforms_json(
+    path: str | os.PathLike[str], *, undo_applied_transform: bool = False
+) -> Cameras:
+    """Read a nerfstudio / instant-ngp ``transforms.json``.
+
+    Args:
+        path: the JSON file; image paths in it are relative to its folder.
+        undo_applied_transform: nerfstudio's ``ns-process-data`` stores poses in a frame rotated
+            from COLMAP's and records the rotation as ``applied_transform``; True maps the poses
+            back to the COLMAP world frame (what a 3DGS model trained from that COLMAP model
+            uses). False (default) keeps the file's frame, as the 3DGS Blender loader does.
+
+    Returns:
+        :class:`Cameras` in file order; names are the ``file_path`` values (without a leading ./).
+
+    Raises:
+        InputError: unreadable file, no frames, a missing or non-finite value, non-zero distortion
+            or a non-pinhole model, a non-rigid ``transform_matrix``, an image needed for its size
+            that does not exist.
+    """
+    path = Path(path)
+    data = load_json(path)
+    if not isinstance(data, dict) or not isinstance(data.get("frames"), list) or not data["frames"]:
+        raise InputError(path, "expected an object with a non-empty 'frames' list (transforms.json)")
+    root = path.parent
+    shared = {key: data[key] for key in _INTRINSIC_KEYS if key in data}
+    applied = None
+    if "applied_transform" in data:
+        applied = np.eye(4)
+        applied[:3, :] = get_matrix(data, "applied_transform", (3, 4), path, "the file")
+        if undo_applied_transform:
+            logger.info("%s: undoing applied_transform (back to the COLMAP world frame)", path)
+        else:
+            logger.info("%s: poses kept in the file's frame (applied_transform not undone)", path)
+    elif undo_applied_transform:
+        raise InputError(path, "undo_applied_transform was asked but the file has no applied_transform")
+    viewmats, Ks, widths, heights, names = [], [], [], [], []
+    for index, frame in enumerate(data["frames"]):
+        if not isinstance(frame, dict) or not isinstance(frame.get("file_path"), str):
+            raise InputError(path, f"frame {index} has no 'file_path' string")
+        file_path = frame["file_path"]
+        name = file_path[2:] if file_path.startswith("./") else file_path
+        where = f"frame {index} ({file_path!r})"
+        values = {**shared, **{key: frame[key] for key in _INTRINSIC_KEYS if key in frame}}
+        K, width, height = _intrinsics(values, root, name, path, where)
+        camtoworld = get_matrix(frame, "transform_matrix", (4, 4), path, where)
+        rotation = camtoworld[:3, :3]
+        if (
+            not np.allclose(camtoworld[3], [0, 0, 0, 1], atol=1e-6)
+            or not np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-4)
+            or np.linalg.det(rotation) < 0
+        ):
+            raise InputError(path, f"{where}: transform_matrix is not a rigid camera→world pose")
+        if applied is not None and undo_applied_transform:
+            camtoworld = np.linalg.inv(applied) @ camtoworld
+        camtoworld = camtoworld @ OPENGL_TO_OPENCV
+        viewmat = np.eye(4)
+        viewmat[:3, :3] = camtoworld[:3, :3].T
+        viewmat[:3, 3] = -camtoworld[:3, :3].T @ camtoworld[:3, 3]
+        viewmats.append(viewmat)
+        Ks.append(K)
+        widths.append(width)
+        heights.append(height)
+        names.append(name)
+    cameras = Cameras(
+        viewmats=torch.tensor(np.stack(viewmats), dtype=torch.float64),
+        Ks=torch.tensor(Ks, dtype=torch.float64),
+        widths=torch.tensor(widths, dtype=torch.int64),
+        heights=torch.tensor(heights, dtype=torch.int64),
+        names=tuple(names),
+    )
+    return cameras.check(source=str(path))
+
+
+def write_transforms_json(path: str | os.PathLike[str], cameras: Cameras) -> None:
+    """Write ``cameras`` as a nerfstudio ``transforms.json`` (atomically).
+
+    ``file_path`` is each camera's name as is (write names relative to the JSON's folder).
+    Intrinsics are written once at the top when all cameras share them, per frame otherwise.
+
+    Raises:
+        InputError: the cameras fail :meth:`Cameras.check` or have a skewed K.
+    """
+    cameras.check(source=f"cameras to write to {os.fspath(path)}")
+    if bool((cameras.Ks[:, 0, 1] != 0).any()):
+        raise InputError(path, "transforms.json cannot store skew (K[0, 1] != 0)")
+
+    def intrinsics(i: int) -> dict[str, float | int]:
+        K = cameras.Ks[i].numpy()
+        return {"fl_x": float(K[0, 0]), "fl_y": float(K[1, 1]), "cx": float(K[0, 2]),
+                "cy": float(K[1, 2]), "w": int(cameras.widths[i]), "h": int(cameras.heights[i])}
+
+    per_camera = [intrinsics(i) for i in range(len(cameras))]
+    shared = all(values == per_camera[0] for values in per_camera)
+    camtoworlds = (cameras.camtoworlds().numpy() @ OPENGL_TO_OPENCV).tolist()
+    document: dict[str, Any] = {"camera_model": "PINHOLE"}
+    if shared:
+        document.update(per_camera[0])
+    document["frames"] = [
+        {"file_path": name, "transform_matrix": camtoworld, **({} if shared else values)}
+        for name, camtoworld, values in zip(cameras.names, camtoworlds, per_camera)
+    ]
+    with atomic_output(path, "w") as handle:
+        json.dump(document, handle, indent=2)

@@ -1,0 +1,80 @@
+"""Shared fixtures: the real samples in ../shared/data and small random scenes."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from thgs import Cameras, Gaussians
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED_DATA = REPO.parent / "shared" / "data"
+
+
+@pytest.fixture
+def shared_data() -> Path:
+    """../shared/data, or a clean skip where it is absent."""
+    if not SHARED_DATA.is_dir():
+        pytest.skip(f"real sample data not found at {SHARED_DATA}")
+    return SHARED_DATA
+
+
+def random_gaussians(n: int, *, kind: str = "3dgs", sh_degree: int = 3, normals: bool = True,
+                     seed: int = 0) -> Gaussians:
+    """Gaussians with values spread like trained ones (float32, CPU)."""
+    generator = torch.Generator().manual_seed(seed)
+
+    def randn(*shape: int) -> torch.Tensor:
+        return torch.randn(*shape, generator=generator)
+
+    k = (sh_degree + 1) ** 2
+    return Gaussians(
+        means=randn(n, 3) * 3,
+        quats=randn(n, 4),
+        scales=randn(n, 2 if kind == "2dgs" else 3) - 4,
+        opacities=randn(n) * 2,
+        sh=randn(n, k, 3) * 0.5,
+        normals=randn(n, 3) if normals else None,
+    )
+
+
+def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = np.array([0.0, 0.0, 1.0])) -> np.ndarray:
+    """World→camera 4×4 (OpenCV axes) of a camera at ``eye`` looking at ``target``."""
+    forward = target - eye
+    forward /= np.linalg.norm(forward)
+    right = np.cross(forward, up)
+    right /= np.linalg.norm(right)
+    down = np.cross(forward, right)
+    rotation = np.stack([right, down, forward])  # rows: camera axes in world coordinates
+    viewmat = np.eye(4)
+    viewmat[:3, :3] = rotation
+    viewmat[:3, 3] = -rotation @ eye
+    return viewmat
+
+
+def random_cameras(m: int, *, seed: int = 0, centred: bool = False) -> Cameras:
+    """Cameras on a sphere around the origin, looking at it, with varied intrinsics and sizes."""
+    rng = np.random.default_rng(seed)
+    viewmats, Ks, widths, heights = [], [], [], []
+    for i in range(m):
+        theta = 2 * math.pi * i / m
+        eye = np.array([4 * math.cos(theta), 4 * math.sin(theta), 1.5 + rng.uniform(-0.5, 0.5)])
+        viewmats.append(look_at(eye, rng.normal(size=3) * 0.1))
+        width, height = int(rng.integers(200, 400)), int(rng.integers(150, 300))
+        cx = width / 2 if centred else rng.uniform(0.4, 0.6) * width
+        cy = height / 2 if centred else rng.uniform(0.4, 0.6) * height
+        fx = rng.uniform(200, 400)
+        Ks.append([[fx, 0, cx], [0, fx * rng.uniform(0.98, 1.02), cy], [0, 0, 1]])
+        widths.append(width)
+        heights.append(height)
+    return Cameras(
+        viewmats=torch.tensor(np.stack(viewmats)),
+        Ks=torch.tensor(Ks, dtype=torch.float64),
+        widths=torch.tensor(widths),
+        heights=torch.tensor(heights),
+        names=tuple(f"view_{i:03d}.png" for i in range(m)),
+    ).check()
