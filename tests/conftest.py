@@ -23,8 +23,9 @@ def shared_data() -> Path:
     return SHARED_DATA
 
 
-def random_gaussians(n: int, *, kind: str = "3dgs", sh_degree: int = 3, normals: bool = True,
-                     seed: int = 0) -> Gaussians:
+def random_gaussians(
+    n: int, *, kind: str = "3dgs", sh_degree: int = 3, normals: bool = True, seed: int = 0
+) -> Gaussians:
     """Gaussians with values spread like trained ones (float32, CPU)."""
     generator = torch.Generator().manual_seed(seed)
 
@@ -42,11 +43,13 @@ def random_gaussians(n: int, *, kind: str = "3dgs", sh_degree: int = 3, normals:
     )
 
 
-def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = np.array([0.0, 0.0, 1.0])) -> np.ndarray:
+def look_at(
+    eye: np.ndarray, target: np.ndarray, up: tuple[float, float, float] = (0.0, 0.0, 1.0)
+) -> np.ndarray:
     """World→camera 4×4 (OpenCV axes) of a camera at ``eye`` looking at ``target``."""
     forward = target - eye
     forward /= np.linalg.norm(forward)
-    right = np.cross(forward, up)
+    right = np.cross(forward, np.asarray(up))
     right /= np.linalg.norm(right)
     down = np.cross(forward, right)
     rotation = np.stack([right, down, forward])  # rows: camera axes in world coordinates

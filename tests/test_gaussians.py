@@ -8,10 +8,9 @@ import numpy as np
 import pytest
 import torch
 
+from conftest import random_gaussians
 from thgs import Gaussians, InputError
 from thgs.scene import SH_C0
-
-from conftest import random_gaussians
 
 
 def one_gaussian(quat, scales) -> Gaussians:
@@ -45,15 +44,20 @@ def test_rotation_matrix_90_degrees_about_z():
     expected = torch.tensor([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]])
     torch.testing.assert_close(g.rotation_matrices()[0], expected, atol=1e-6, rtol=0)
     # column 0 is where local x goes: x → y under a +90° turn about z
-    torch.testing.assert_close(g.rotation_matrices()[0] @ torch.tensor([1.0, 0, 0]),
-                               torch.tensor([0.0, 1, 0]), atol=1e-6, rtol=0)
+    torch.testing.assert_close(
+        g.rotation_matrices()[0] @ torch.tensor([1.0, 0, 0]),
+        torch.tensor([0.0, 1, 0]),
+        atol=1e-6,
+        rtol=0,
+    )
 
 
 def test_rotation_matrices_are_proper_rotations():
     g = random_gaussians(500, seed=3)
     r = g.rotation_matrices().double()
-    torch.testing.assert_close(r @ r.transpose(1, 2), torch.eye(3).double().expand(500, 3, 3),
-                               atol=1e-5, rtol=0)
+    torch.testing.assert_close(
+        r @ r.transpose(1, 2), torch.eye(3).double().expand(500, 3, 3), atol=1e-5, rtol=0
+    )
     torch.testing.assert_close(torch.linalg.det(r), torch.ones(500).double(), atol=1e-5, rtol=0)
 
 
@@ -62,8 +66,9 @@ def test_surfel_normal_is_third_column():
     half = math.sqrt(0.5)
     g = one_gaussian([half, half, 0, 0], [0.0, 0.0])
     assert g.kind == "2dgs"
-    torch.testing.assert_close(g.surface_normals()[0], torch.tensor([0.0, -1.0, 0.0]),
-                               atol=1e-6, rtol=0)
+    torch.testing.assert_close(
+        g.surface_normals()[0], torch.tensor([0.0, -1.0, 0.0]), atol=1e-6, rtol=0
+    )
 
 
 def test_ellipsoid_normal_is_smallest_axis():
@@ -77,8 +82,15 @@ def test_ellipsoid_normal_is_smallest_axis():
 
 def test_select_keeps_every_field():
     g = random_gaussians(10, sh_degree=2)
-    g = Gaussians(g.means, g.quats, g.scales, g.opacities, g.sh, g.normals,
-                  extras={"label": np.arange(10, dtype=np.int32)})
+    g = Gaussians(
+        g.means,
+        g.quats,
+        g.scales,
+        g.opacities,
+        g.sh,
+        g.normals,
+        extras={"label": np.arange(10, dtype=np.int32)},
+    )
     picked = g.select(torch.tensor([7, 2]))
     assert len(picked) == 2
     torch.testing.assert_close(picked.sh, g.sh[[7, 2]])

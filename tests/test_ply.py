@@ -12,9 +12,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from thgs import Gaussians, InputError, read_ply, write_ply
-
 from conftest import random_gaussians
+from thgs import Gaussians, InputError, read_ply, write_ply
 
 
 def raw_ply(path, columns: dict[str, np.ndarray], *, text: bool = False) -> None:
@@ -26,12 +25,19 @@ def raw_ply(path, columns: dict[str, np.ndarray], *, text: bool = False) -> None
     plyfile.PlyData([plyfile.PlyElement.describe(records, "vertex")], text=text).write(str(path))
 
 
-def inria_columns(n: int, *, scales: int = 3, rest: int = 45, normals: bool = True,
-                  seed: int = 0) -> dict[str, np.ndarray]:
+def inria_columns(
+    n: int, *, scales: int = 3, rest: int = 45, normals: bool = True, seed: int = 0
+) -> dict[str, np.ndarray]:
     rng = np.random.default_rng(seed)
-    names = ["x", "y", "z"] + (["nx", "ny", "nz"] if normals else []) + [
-        f"f_dc_{i}" for i in range(3)] + [f"f_rest_{i}" for i in range(rest)] + ["opacity"] + [
-        f"scale_{i}" for i in range(scales)] + [f"rot_{i}" for i in range(4)]
+    names = (
+        ["x", "y", "z"]
+        + (["nx", "ny", "nz"] if normals else [])
+        + [f"f_dc_{i}" for i in range(3)]
+        + [f"f_rest_{i}" for i in range(rest)]
+        + ["opacity"]
+        + [f"scale_{i}" for i in range(scales)]
+        + [f"rot_{i}" for i in range(4)]
+    )
     return {name: rng.normal(size=n).astype(np.float32) for name in names}
 
 
@@ -40,7 +46,7 @@ def sha256(path) -> str:
 
 
 def test_layout_by_hand(tmp_path):
-    """f_rest is channel-major: f_rest_0..14 are red coefficients 1..15, 15..29 green, 30..44 blue."""
+    """f_rest is channel-major: f_rest_0..14 are red coefficients 1..15, then green, then blue."""
     columns = inria_columns(5, rest=45)
     raw_ply(tmp_path / "a.ply", columns)
     g = read_ply(tmp_path / "a.ply")
@@ -100,8 +106,9 @@ def test_ascii_ply_reads(tmp_path):
 
 @settings(max_examples=25, deadline=None)
 @given(
-    values=hnp.arrays(np.float32, (3, 14), elements=st.floats(width=32, allow_nan=False,
-                                                                 allow_infinity=False)),
+    values=hnp.arrays(
+        np.float32, (3, 14), elements=st.floats(width=32, allow_nan=False, allow_infinity=False)
+    ),
 )
 def test_round_trip_any_finite_float(tmp_path_factory, values):
     """Every finite float32, subnormals and −0.0 included, survives bit for bit."""
@@ -118,8 +125,9 @@ def test_round_trip_any_finite_float(tmp_path_factory, values):
     write_ply(path, g)
     back = read_ply(path)
     for name in ("means", "quats", "scales", "opacities", "sh"):
-        assert np.array_equal(getattr(back, name).numpy().view(np.int32),
-                              getattr(g, name).numpy().view(np.int32)), name
+        assert np.array_equal(
+            getattr(back, name).numpy().view(np.int32), getattr(g, name).numpy().view(np.int32)
+        ), name
 
 
 def test_real_sample(shared_data, tmp_path):
@@ -149,6 +157,7 @@ def test_bundled_sample_is_the_shared_one(shared_data):
 
 # --- bad input: one exception type, the file named, the problem said ---------------------------
 
+
 def without(columns, *names):
     return {key: value for key, value in columns.items() if key not in names}
 
@@ -164,12 +173,21 @@ def without(columns, *names):
         (lambda: without(inria_columns(4), "f_rest_3"), "not numbered"),
         (lambda: inria_columns(4, rest=10), "10 f_rest_"),
         (lambda: without(inria_columns(4), "nz"), "partial normals"),
-        (lambda: {**inria_columns(4), "x": np.array([0, np.nan, 0, 0], np.float32)},
-         "means has NaN or infinite values in 1 Gaussians .first: Gaussian 1"),
-        (lambda: {**inria_columns(4), "scale_1": np.array([0, 0, np.inf, 0], np.float32)},
-         "scales has NaN or infinite"),
-        (lambda: {**inria_columns(4), **{f"rot_{i}": np.array([1, 0, 1, 1], np.float32)
-                                         for i in range(4)}}, "zero quaternion, which is no rotation .first: Gaussian 1"),
+        (
+            lambda: {**inria_columns(4), "x": np.array([0, np.nan, 0, 0], np.float32)},
+            "means has NaN or infinite values in 1 Gaussians .first: Gaussian 1",
+        ),
+        (
+            lambda: {**inria_columns(4), "scale_1": np.array([0, 0, np.inf, 0], np.float32)},
+            "scales has NaN or infinite",
+        ),
+        (
+            lambda: {
+                **inria_columns(4),
+                **{f"rot_{i}": np.array([1, 0, 1, 1], np.float32) for i in range(4)},
+            },
+            "zero quaternion, which is no rotation .first: Gaussian 1",
+        ),
     ],
 )
 def test_bad_properties(tmp_path, make, message):
@@ -202,7 +220,9 @@ def test_bad_files(tmp_path):
 
 def test_no_vertex_element_and_no_rows(tmp_path):
     records = np.zeros(3, dtype=[("a", "f4")])
-    plyfile.PlyData([plyfile.PlyElement.describe(records, "face_data")]).write(str(tmp_path / "a.ply"))
+    plyfile.PlyData([plyfile.PlyElement.describe(records, "face_data")]).write(
+        str(tmp_path / "a.ply")
+    )
     with pytest.raises(InputError, match="no 'vertex' element"):
         read_ply(tmp_path / "a.ply")
     raw_ply(tmp_path / "b.ply", {k: v[:0] for k, v in inria_columns(1).items()})

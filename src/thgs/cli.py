@@ -61,7 +61,9 @@ def _render_summary(path: Path, found: tuple[str, ...], summary: SceneSummary) -
     table.add_row("largest scale", f"median {summary.scale_median:.4g} scene units")
     cameras = summary.cameras
     if cameras is None:
-        table.add_row("cameras", "none (pass --source with COLMAP, transforms.json or cameras.json)")
+        table.add_row(
+            "cameras", "none (pass --source with COLMAP, transforms.json or cameras.json)"
+        )
     else:
         table.add_row(
             "cameras",
@@ -101,7 +103,11 @@ def info(
     """
     _setup_logging(verbose)
     scene = load_scene(
-        path, source=source, iteration=iteration, images=images, scale=scale,
+        path,
+        source=source,
+        iteration=iteration,
+        images=images,
+        scale=scale,
         undo_applied_transform=undo_applied_transform,
     )
     summary = summarize(scene)

@@ -36,8 +36,9 @@ def get_number(entry: dict[str, Any], key: str, path: Path, where: str) -> float
     return float(value)
 
 
-def get_matrix(entry: dict[str, Any], key: str, shape: tuple[int, ...], path: Path,
-               where: str) -> list:
+def get_matrix(
+    entry: dict[str, Any], key: str, shape: tuple[int, ...], path: Path, where: str
+) -> list:
     """``entry[key]`` as a nested list of finite numbers with the given shape."""
     import numpy as np
 
@@ -48,7 +49,9 @@ def get_matrix(entry: dict[str, Any], key: str, shape: tuple[int, ...], path: Pa
     except (TypeError, ValueError) as exc:
         raise InputError(path, f"{where}: {key!r} is not a numeric array") from exc
     if array.shape != shape:
-        raise InputError(path, f"{where}: {key!r} has shape {list(array.shape)}, expected {list(shape)}")
+        raise InputError(
+            path, f"{where}: {key!r} has shape {list(array.shape)}, expected {list(shape)}"
+        )
     if not np.isfinite(array).all():
         raise InputError(path, f"{where}: {key!r} has NaN or infinite values")
     return array

@@ -106,7 +106,7 @@ class Cameras:
         return Cameras(self.viewmats.clone(), Ks, widths, heights, self.names)
 
     def scaled(self, scale: float) -> Cameras:
-        """The cameras for images resized by ``scale`` (0.25 for 4× smaller), sizes rounded half up."""
+        """The cameras for images resized by ``scale`` (0.25: 4× smaller), sizes rounded half up."""
         if not scale > 0:
             raise InputError("Cameras.scaled", f"scale must be positive, got {scale}")
         widths = [round_half_up(float(w) * scale) for w in self.widths]
@@ -118,8 +118,11 @@ class Cameras:
         index_t = torch.as_tensor(index, dtype=torch.int64).reshape(-1)
         names = tuple(self.names[int(i)] for i in index_t)
         return Cameras(
-            self.viewmats[index_t], self.Ks[index_t], self.widths[index_t],
-            self.heights[index_t], names,
+            self.viewmats[index_t],
+            self.Ks[index_t],
+            self.widths[index_t],
+            self.heights[index_t],
+            names,
         )
 
     def check(self, source: str = "Cameras") -> Cameras:
@@ -151,7 +154,8 @@ class Cameras:
             bad = ~torch.isfinite(tensor.reshape(m, -1)).all(dim=-1)
             if bool(bad.any()):
                 raise InputError(
-                    source, f"{name} of camera {self.names[int(bad.nonzero()[0, 0])]!r} is not finite"
+                    source,
+                    f"{name} of camera {self.names[int(bad.nonzero()[0, 0])]!r} is not finite",
                 )
         for i in range(m):
             self._check_one(i, source)
@@ -170,15 +174,18 @@ class Cameras:
         rotation = viewmat[:3, :3]
         if not np.allclose(viewmat[3], [0.0, 0.0, 0.0, 1.0], atol=1e-9):
             raise InputError(source, f"camera {name!r}: viewmat last row is {viewmat[3].tolist()}")
-        if not np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-5) or np.linalg.det(
-            rotation
-        ) < 0:
+        if (
+            not np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-5)
+            or np.linalg.det(rotation) < 0
+        ):
             raise InputError(source, f"camera {name!r}: viewmat rotation is not a proper rotation")
         K = self.Ks[i].numpy()
         if K[1, 0] != 0 or K[2, 0] != 0 or K[2, 1] != 0 or K[2, 2] != 1:
             raise InputError(source, f"camera {name!r}: K is not a pinhole matrix: {K.tolist()}")
         if not (K[0, 0] > 0 and K[1, 1] > 0):
-            raise InputError(source, f"camera {name!r}: focal lengths must be positive: {K.tolist()}")
+            raise InputError(
+                source, f"camera {name!r}: focal lengths must be positive: {K.tolist()}"
+            )
         if int(self.widths[i]) <= 0 or int(self.heights[i]) <= 0:
             raise InputError(
                 source, f"camera {name!r}: size {int(self.widths[i])}×{int(self.heights[i])}"

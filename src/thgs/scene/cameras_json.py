@@ -58,7 +58,10 @@ def read_cameras_json(path: str | os.PathLike[str]) -> Cameras:
         fy = get_number(entry, "fy", path, where)
         rotation = get_matrix(entry, "rotation", (3, 3), path, where)
         position = get_matrix(entry, "position", (3,), path, where)
-        if not np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-5) or np.linalg.det(rotation) < 0:
+        if (
+            not np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-5)
+            or np.linalg.det(rotation) < 0
+        ):
             raise InputError(path, f"{where}: 'rotation' is not a proper rotation matrix")
         viewmat = np.eye(4)
         viewmat[:3, :3] = rotation.T
@@ -85,7 +88,7 @@ def write_cameras_json(path: str | os.PathLike[str], cameras: Cameras) -> None:
     must have it at the image centre (within 1e-6 px).
 
     Raises:
-        InputError: the cameras fail :meth:`Cameras.check`, or one has an off-centre principal point.
+        InputError: the cameras fail :meth:`Cameras.check`, or a principal point is off-centre.
     """
     cameras.check(source=f"cameras to write to {os.fspath(path)}")
     entries = []
@@ -100,15 +103,17 @@ def write_cameras_json(path: str | os.PathLike[str], cameras: Cameras) -> None:
                 f"not the image centre ({width / 2}, {height / 2}); cameras.json cannot store it "
                 "(write COLMAP or transforms.json instead)",
             )
-        entries.append({
-            "id": i,
-            "img_name": stem,
-            "width": width,
-            "height": height,
-            "position": camtoworlds[i, :3, 3].tolist(),
-            "rotation": camtoworlds[i, :3, :3].tolist(),
-            "fy": float(K[1, 1]),
-            "fx": float(K[0, 0]),
-        })
+        entries.append(
+            {
+                "id": i,
+                "img_name": stem,
+                "width": width,
+                "height": height,
+                "position": camtoworlds[i, :3, 3].tolist(),
+                "rotation": camtoworlds[i, :3, :3].tolist(),
+                "fy": float(K[1, 1]),
+                "fx": float(K[0, 0]),
+            }
+        )
     with atomic_output(path, "w") as handle:
         json.dump(entries, handle, indent=1)

@@ -30,7 +30,9 @@ _SUPPORTED_MODELS = ("PINHOLE", "SIMPLE_PINHOLE")
 
 def _model_files(sparse_dir: Path) -> str:
     for ext in (".bin", ".txt"):
-        if all((sparse_dir / f"{stem}{ext}").is_file() for stem in ("cameras", "images", "points3D")):
+        if all(
+            (sparse_dir / f"{stem}{ext}").is_file() for stem in ("cameras", "images", "points3D")
+        ):
             return "binary" if ext == ".bin" else "text"
     raise InputError(
         sparse_dir,
@@ -96,7 +98,9 @@ def read_colmap(
                 "`colmap image_undistorter` and use its sparse model and images",
             )
         params = np.asarray(camera.params, dtype=np.float64)
-        fx, fy, cx, cy = (params[0], params[0], *params[1:3]) if model == "SIMPLE_PINHOLE" else params
+        fx, fy, cx, cy = (
+            (params[0], params[0], *params[1:3]) if model == "SIMPLE_PINHOLE" else params
+        )
         viewmat = np.eye(4)
         viewmat[:3, :] = image.cam_from_world().matrix()
         viewmats.append(viewmat)

@@ -1,4 +1,4 @@
-"""The Gaussians of a trained scene, as stored (pre-activation), with accessors that activate them."""
+"""The Gaussians of a trained scene as stored (pre-activation), with activating accessors."""
 
 from __future__ import annotations
 
@@ -35,7 +35,8 @@ class Gaussians:
             scene units after ``exp``.
         opacities: [N] logits; ``sigmoid`` gives the opacity in [0, 1].
         sh: [N, K, 3] spherical-harmonics coefficients, K = (degree + 1)², ``sh[:, 0]`` is the DC
-            term (PLY ``f_dc_0..2``), ``sh[:, 1:, c]`` is PLY ``f_rest_{c·(K−1)} … f_rest_{c·(K−1)+K−2}``.
+            term (PLY ``f_dc_0..2``), ``sh[:, 1:, c]`` is PLY
+            ``f_rest_{c·(K−1)} … f_rest_{c·(K−1)+K−2}`` (channel-major).
         normals: [N, 3] the PLY's ``nx, ny, nz`` if it had them (trainers write zeros), else None.
             Carried for round trips only; :meth:`surface_normals` gives geometric normals.
         extras: other per-Gaussian PLY properties, name → [N] NumPy array, in file order, kept
@@ -55,7 +56,7 @@ class Gaussians:
 
     @property
     def kind(self) -> Literal["2dgs", "3dgs"]:
-        """"2dgs" for 2 scales per Gaussian (surfels), "3dgs" for 3 (ellipsoids)."""
+        """ "2dgs" for 2 scales per Gaussian (surfels), "3dgs" for 3 (ellipsoids)."""
         return "2dgs" if self.scales.shape[-1] == 2 else "3dgs"
 
     @property
@@ -72,7 +73,7 @@ class Gaussians:
         return torch.sigmoid(self.opacities)
 
     def activated_scales(self) -> Tensor:
-        """[N, 2|3] standard deviations along the local axes, scene units (exp of the stored logs)."""
+        """[N, 2|3] standard deviations along the local axes, scene units (exp of the logs)."""
         return torch.exp(self.scales)
 
     def unit_quats(self) -> Tensor:
@@ -84,9 +85,15 @@ class Gaussians:
         w, x, y, z = self.unit_quats().unbind(-1)
         return torch.stack(
             [
-                1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-                2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-                2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+                1 - 2 * (y * y + z * z),
+                2 * (x * y - w * z),
+                2 * (x * z + w * y),
+                2 * (x * y + w * z),
+                1 - 2 * (x * x + z * z),
+                2 * (y * z - w * x),
+                2 * (x * z - w * y),
+                2 * (y * z + w * x),
+                1 - 2 * (x * x + y * y),
             ],
             dim=-1,
         ).reshape(-1, 3, 3)
@@ -153,23 +160,31 @@ class Gaussians:
         for name, (tensor, shape) in expected.items():
             if tuple(tensor.shape) != shape:
                 raise InputError(source, f"{name} must be {list(shape)}, got {list(tensor.shape)}")
-        if self.scales.ndim != 2 or self.scales.shape != (n, self.scales.shape[-1]) or (
-            self.scales.shape[-1] not in (2, 3)
+        if (
+            self.scales.ndim != 2
+            or self.scales.shape != (n, self.scales.shape[-1])
+            or (self.scales.shape[-1] not in (2, 3))
         ):
             raise InputError(
                 source,
                 f"scales must be [N, 2] (2DGS) or [N, 3] (3DGS) with N = {n}, "
                 f"got {list(self.scales.shape)}",
             )
-        if self.sh.ndim != 3 or self.sh.shape[0] != n or self.sh.shape[2] != 3 or (
-            self.sh.shape[1] not in _SH_COEFFS_PER_DEGREE
+        if (
+            self.sh.ndim != 3
+            or self.sh.shape[0] != n
+            or self.sh.shape[2] != 3
+            or (self.sh.shape[1] not in _SH_COEFFS_PER_DEGREE)
         ):
             raise InputError(
                 source, f"sh must be [N, K, 3] with K in 1, 4, 9, 16, got {list(self.sh.shape)}"
             )
         tensors = {
-            "means": self.means, "quats": self.quats, "scales": self.scales,
-            "opacities": self.opacities, "sh": self.sh,
+            "means": self.means,
+            "quats": self.quats,
+            "scales": self.scales,
+            "opacities": self.opacities,
+            "sh": self.sh,
         }
         if self.normals is not None:
             tensors["normals"] = self.normals

@@ -41,9 +41,7 @@ def find_images(cameras: Cameras, root: str | os.PathLike[str]) -> list[Path | N
     return found
 
 
-def fit_to_images(
-    cameras: Cameras, root: str | os.PathLike[str], *, scale: float = 1.0
-) -> Cameras:
+def fit_to_images(cameras: Cameras, root: str | os.PathLike[str], *, scale: float = 1.0) -> Cameras:
     """Check every camera against its image under ``root`` and return cameras at the images' size.
 
     Each image must exist and measure ``round(width · scale) × round(height · scale)`` within one
@@ -57,7 +55,7 @@ def fit_to_images(
         scale: image size / camera-model size (0.25 for images downscaled 4×).
 
     Raises:
-        InputError: ``root`` is missing, an image is missing or unreadable, or a size does not match.
+        InputError: ``root`` or an image is missing, an image is unreadable, or a size differs.
     """
     root = Path(root)
     if not root.is_dir():

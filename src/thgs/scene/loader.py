@@ -75,8 +75,9 @@ def load_cameras(
     """Read the cameras of a source: a camera file, or a folder holding one.
 
     A folder is searched, in this order, for a COLMAP model in the folder itself, in ``sparse/0/``
-    or in ``sparse/``, then for ``transforms.json`` and ``cameras.json``. A file is read by its content: a JSON list is a
-    3DGS ``cameras.json``, a JSON object with ``frames`` a ``transforms.json``.
+    or in ``sparse/``, then for ``transforms.json`` and ``cameras.json``. A file is read by its
+    content: a JSON list is a 3DGS ``cameras.json``, a JSON object with ``frames`` a
+    ``transforms.json``.
 
     Images: for COLMAP and cameras.json, the folder ``source/<images>`` must hold every camera's
     image (``images=None`` means ``images/``, checked only when present; a folder named
@@ -133,7 +134,9 @@ def load_cameras(
     else:
         if scale != 1.0:
             cameras = cameras.scaled(scale)
-        found.append(f"images not checked (none found), {_size_range(cameras)} from the camera file")
+        found.append(
+            f"images not checked (none found), {_size_range(cameras)} from the camera file"
+        )
     return cameras, camera_path, found
 
 
@@ -215,7 +218,9 @@ def load_scene(
     camera_source = source if source is not None else model_cameras
     if camera_source is not None:
         cameras, cameras_path, camera_found = load_cameras(
-            camera_source, images=images, scale=scale,
+            camera_source,
+            images=images,
+            scale=scale,
             undo_applied_transform=undo_applied_transform,
         )
         found.extend(camera_found)

@@ -79,8 +79,21 @@ def read_ply(path: str | os.PathLike[str]) -> Gaussians:
     if vertex.count == 0:
         raise InputError(path, "the PLY holds no Gaussians (vertex count 0)")
 
-    required = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity",
-                "rot_0", "rot_1", "rot_2", "rot_3", "scale_0", "scale_1"]
+    required = [
+        "x",
+        "y",
+        "z",
+        "f_dc_0",
+        "f_dc_1",
+        "f_dc_2",
+        "opacity",
+        "rot_0",
+        "rot_1",
+        "rot_2",
+        "rot_3",
+        "scale_0",
+        "scale_1",
+    ]
     missing = [name for name in required if name not in names]
     if missing:
         raise InputError(
@@ -125,8 +138,19 @@ def read_ply(path: str | os.PathLike[str]) -> Gaussians:
     sh[:, 0] = column_block(["f_dc_0", "f_dc_1", "f_dc_2"])
     if k > 1:
         sh[:, 1:] = column_block(rest_names).reshape(n, 3, k - 1).transpose(1, 2)
-    standard = {"x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity",
-                *scale_names, *rot_names, *rest_names, *normal_names}
+    standard = {
+        "x",
+        "y",
+        "z",
+        "f_dc_0",
+        "f_dc_1",
+        "f_dc_2",
+        "opacity",
+        *scale_names,
+        *rot_names,
+        *rest_names,
+        *normal_names,
+    }
     non_float = [name for name in names if name in standard and data[name].dtype.str[1:] != "f4"]
     if non_float:
         logger.info("%s: converting %s to float32", path, non_float)
@@ -157,8 +181,9 @@ def _layout(gaussians: Gaussians) -> list[tuple[str, np.ndarray]]:
     columns.extend((axis, means[:, j].astype(np.float32)) for j, axis in enumerate("xyz"))
     if gaussians.normals is not None:
         normals = gaussians.normals.detach().cpu().numpy()
-        columns.extend((axis, normals[:, j].astype(np.float32)) for j, axis in
-                       enumerate(("nx", "ny", "nz")))
+        columns.extend(
+            (axis, normals[:, j].astype(np.float32)) for j, axis in enumerate(("nx", "ny", "nz"))
+        )
     add("f_dc_", sh[:, 0])
     add("f_rest_", sh[:, 1:].transpose(0, 2, 1))
     columns.append(("opacity", gaussians.opacities.detach().cpu().numpy().astype(np.float32)))

@@ -6,7 +6,7 @@ Layout::
      "fl_x": …, "fl_y": …, "cx": …, "cy": …, "w": …, "h": …,   # pixels, global (optional)
      "camera_angle_x": …,                          # instant-ngp / Blender: horizontal FoV (rad)
      "frames": [{"file_path": "images/frame_00001.png",
-                 "transform_matrix": [[…4×4…]],    # camera→world, OpenGL axes (x right, y up, z back)
+                 "transform_matrix": [[…4×4…]],    # camera→world, OpenGL axes
                  "fl_x": …, …}]}                   # per-frame intrinsics override global ones
 
 Missing values are completed as the 3DGS Blender loader does: ``fl_x`` from ``camera_angle_x``,
@@ -38,10 +38,25 @@ __all__ = ["read_transforms_json", "write_transforms_json"]
 logger = logging.getLogger(__name__)
 
 OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
-"""Flips the camera's y and z axes: OpenGL (x right, y up, z back) ↔ OpenCV (x right, y down, z forward)."""
+"""Flips camera y and z: OpenGL (x right, y up, z back) ↔ OpenCV (x right, y down, z forward)."""
 
-_INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x", "camera_angle_y",
-                   "k1", "k2", "k3", "k4", "p1", "p2", "camera_model")
+_INTRINSIC_KEYS = (
+    "fl_x",
+    "fl_y",
+    "cx",
+    "cy",
+    "w",
+    "h",
+    "camera_angle_x",
+    "camera_angle_y",
+    "k1",
+    "k2",
+    "k3",
+    "k4",
+    "p1",
+    "p2",
+    "camera_model",
+)
 _DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
 _PINHOLE_MODELS = ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE")
 
@@ -60,18 +75,21 @@ def _image_size(root: Path, file_path: str, path: Path, where: str) -> tuple[int
         raise InputError(found, f"not a readable image ({exc})") from exc
 
 
-def _intrinsics(values: dict[str, Any], root: Path, file_path: str, path: Path,
-                where: str) -> tuple[list[list[float]], int, int]:
+def _intrinsics(
+    values: dict[str, Any], root: Path, file_path: str, path: Path, where: str
+) -> tuple[list[list[float]], int, int]:
     model = values.get("camera_model")
     if model is not None and model not in _PINHOLE_MODELS:
         raise InputError(
-            path, f"{where}: camera_model {model!r} is not a pinhole model; undistort the images "
+            path,
+            f"{where}: camera_model {model!r} is not a pinhole model; undistort the images "
             "first (thgs needs undistorted pinhole cameras)",
         )
     for key in _DISTORTION_KEYS:
         if key in values and get_number(values, key, path, where) != 0.0:
             raise InputError(
-                path, f"{where}: distortion {key} = {values[key]}; thgs needs undistorted images "
+                path,
+                f"{where}: distortion {key} = {values[key]}; thgs needs undistorted images "
                 "(undistort them and write zero distortion)",
             )
     if "w" in values and "h" in values:
@@ -121,7 +139,9 @@ def read_transforms_json(
     path = Path(path)
     data = load_json(path)
     if not isinstance(data, dict) or not isinstance(data.get("frames"), list) or not data["frames"]:
-        raise InputError(path, "expected an object with a non-empty 'frames' list (transforms.json)")
+        raise InputError(
+            path, "expected an object with a non-empty 'frames' list (transforms.json)"
+        )
     root = path.parent
     shared = {key: data[key] for key in _INTRINSIC_KEYS if key in data}
     applied = None
@@ -133,7 +153,9 @@ def read_transforms_json(
         else:
             logger.info("%s: poses kept in the file's frame (applied_transform not undone)", path)
     elif undo_applied_transform:
-        raise InputError(path, "undo_applied_transform was asked but the file has no applied_transform")
+        raise InputError(
+            path, "undo_applied_transform was asked but the file has no applied_transform"
+        )
     viewmats, Ks, widths, heights, names = [], [], [], [], []
     for index, frame in enumerate(data["frames"]):
         if not isinstance(frame, dict) or not isinstance(frame.get("file_path"), str):
@@ -187,8 +209,14 @@ def write_transforms_json(path: str | os.PathLike[str], cameras: Cameras) -> Non
 
     def intrinsics(i: int) -> dict[str, float | int]:
         K = cameras.Ks[i].numpy()
-        return {"fl_x": float(K[0, 0]), "fl_y": float(K[1, 1]), "cx": float(K[0, 2]),
-                "cy": float(K[1, 2]), "w": int(cameras.widths[i]), "h": int(cameras.heights[i])}
+        return {
+            "fl_x": float(K[0, 0]),
+            "fl_y": float(K[1, 1]),
+            "cx": float(K[0, 2]),
+            "cy": float(K[1, 2]),
+            "w": int(cameras.widths[i]),
+            "h": int(cameras.heights[i]),
+        }
 
     per_camera = [intrinsics(i) for i in range(len(cameras))]
     shared = all(values == per_camera[0] for values in per_camera)

@@ -1,0 +1,147 @@
+"""load_scene: recognising model folders, PLY + source, and what it reports."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from conftest import random_cameras, random_gaussians
+from thgs import (
+    InputError,
+    load_cameras,
+    load_scene,
+    summarize,
+    write_cameras_json,
+    write_ply,
+    write_transforms_json,
+)
+
+
+def make_model(root, iterations=(7000, 30000), cameras=True):
+    for iteration in iterations:
+        write_ply(
+            root / "point_cloud" / f"iteration_{iteration}" / "point_cloud.ply",
+            random_gaussians(iteration // 1000, kind="2dgs", sh_degree=0, seed=iteration),
+        )
+    (root / "point_cloud" / "iteration_99").mkdir()  # an unfinished iteration, no PLY
+    if cameras:
+        write_cameras_json(root / "cameras.json", random_cameras(4, centred=True))
+    (root / "cfg_args").write_text("Namespace(source_path='/data/scene')")
+    return root
+
+
+def test_model_folder_newest_iteration(tmp_path):
+    scene = load_scene(make_model(tmp_path))
+    assert len(scene.gaussians) == 30 and scene.gaussians.kind == "2dgs"
+    assert scene.ply_path == tmp_path / "point_cloud" / "iteration_30000" / "point_cloud.ply"
+    assert scene.cameras is not None and len(scene.cameras) == 4
+    assert scene.cameras_path == tmp_path / "cameras.json"
+    assert scene.found[0] == f"trained model folder {tmp_path}, iteration 30000"
+    assert any("3DGS cameras.json" in line for line in scene.found)
+
+
+def test_model_folder_chosen_iteration(tmp_path):
+    scene = load_scene(make_model(tmp_path), iteration=7000)
+    assert len(scene.gaussians) == 7
+    with pytest.raises(InputError, match=r"no iteration 5; the folder has \[7000, 30000\]"):
+        load_scene(tmp_path, iteration=5)
+
+
+def test_model_folder_without_cameras(tmp_path):
+    scene = load_scene(make_model(tmp_path, cameras=False))
+    assert scene.cameras is None and scene.cameras_path is None
+    assert "no cameras" in scene.found[-1]
+
+
+def test_not_a_model_folder(tmp_path):
+    with pytest.raises(InputError, match="not a trained model folder") as info:
+        load_scene(tmp_path)
+    assert str(info.value).startswith(str(tmp_path))
+    (tmp_path / "notes.txt").write_text("x")
+    with pytest.raises(InputError, match=r"expected a \.ply file"):
+        load_scene(tmp_path / "notes.txt")
+    with pytest.raises(InputError, match="no such file"):
+        load_scene(tmp_path / "missing.ply")
+
+
+def test_ply_with_colmap_source(shared_data, tmp_path):
+    source = tmp_path / "garden"
+    shutil.copytree(shared_data / "colmap_small", source)
+    scene = load_scene(shared_data / "ply_3dgs_train1000.ply", source=source, scale=0.25)
+    assert len(scene.gaussians) == 1000 and len(scene.cameras) == 23
+    assert scene.cameras_path == source / "sparse" / "0"
+    assert scene.cameras.widths.tolist() == [250] * 23
+    assert any(line.startswith(f"images {source / 'images'} checked") for line in scene.found)
+    # the same images under another name, chosen explicitly
+    (source / "images").rename(source / "images_4")
+    scene = load_scene(
+        shared_data / "ply_3dgs_train1000.ply", source=source, images="images_4", scale=0.25
+    )
+    assert scene.cameras.widths.tolist() == [250] * 23
+    # without images the cameras keep the model's resolution, scaled only if asked
+    scene = load_scene(shared_data / "ply_3dgs_train1000.ply", source=source)
+    assert scene.cameras.widths.tolist() == [1000] * 23
+    assert "images not checked" in scene.found[-1]
+    with pytest.raises(InputError, match="image folder not found"):
+        load_scene(shared_data / "ply_3dgs_train1000.ply", source=source, images="images_8")
+
+
+def test_model_folder_with_source_overrides_cameras_json(shared_data, tmp_path):
+    make_model(tmp_path / "model")
+    scene = load_scene(tmp_path / "model", source=shared_data / "colmap_small", scale=0.25)
+    assert len(scene.cameras) == 23
+
+
+def test_transforms_source_checks_images(tmp_path):
+    cameras = random_cameras(3, centred=True)
+    write_ply(tmp_path / "scene.ply", random_gaussians(20))
+    renamed = type(cameras)(
+        cameras.viewmats,
+        cameras.Ks,
+        cameras.widths,
+        cameras.heights,
+        tuple(f"images/{name}" for name in cameras.names),
+    )
+    write_transforms_json(tmp_path / "data" / "transforms.json", renamed)
+    scene = load_scene(tmp_path / "scene.ply", source=tmp_path / "data")
+    assert "images not checked" in scene.found[-1]
+    (tmp_path / "data" / "images").mkdir()
+    for name, width, height in zip(cameras.names, cameras.widths, cameras.heights):
+        Image.new("RGB", (int(width) // 2, int(height) // 2)).save(tmp_path / "data/images" / name)
+    with pytest.raises(InputError, match=r"suggests scale 0\.49|suggests scale 0\.5"):
+        load_scene(tmp_path / "scene.ply", source=tmp_path / "data")
+    scene = load_scene(
+        tmp_path / "scene.ply", source=tmp_path / "data" / "transforms.json", scale=0.5
+    )
+    np.testing.assert_array_equal(scene.cameras.widths.numpy(), cameras.widths.numpy() // 2)
+
+
+def test_load_cameras_recognises_content_not_names(tmp_path):
+    cameras = random_cameras(2, centred=True)
+    write_cameras_json(tmp_path / "a.json", cameras)
+    write_transforms_json(tmp_path / "b.json", cameras)
+    assert load_cameras(tmp_path / "a.json")[2][0].startswith("3DGS cameras.json")
+    assert load_cameras(tmp_path / "b.json")[2][0].startswith("transforms.json")
+    (tmp_path / "c.json").write_text(json.dumps({"camera": 1}))
+    with pytest.raises(InputError, match=r"neither a 3DGS cameras\.json"):
+        load_cameras(tmp_path / "c.json")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(InputError, match="no cameras found"):
+        load_cameras(tmp_path / "empty")
+
+
+def test_summary_numbers(shared_data):
+    scene = load_scene(shared_data / "ply_3dgs_train1000.ply")
+    summary = summarize(scene)
+    means = scene.gaussians.means.double().numpy()
+    opacity = 1 / (1 + np.exp(-scene.gaussians.opacities.double().numpy()))
+    assert (summary.count, summary.kind, summary.sh_degree) == (1000, "3dgs", 3)
+    np.testing.assert_allclose(summary.bbox_min, means.min(axis=0))
+    np.testing.assert_allclose(summary.bbox_max, means.max(axis=0))
+    np.testing.assert_allclose(summary.opacity_quantiles[2], np.median(opacity), rtol=1e-6)
+    assert summary.low_opacity_share == pytest.approx((opacity < 0.1).mean())
+    assert summary.cameras is None
