@@ -266,6 +266,15 @@ def test_colmap_bad_input(tmp_path, shared_data):
     (broken / "images.bin").write_bytes((sample / "images.bin").read_bytes()[:1000])
     with pytest.raises(InputError, match="cannot read the COLMAP binary model"):
         read_colmap(broken)
+    (broken / "cameras.bin").write_bytes(b"")
+    with pytest.raises(InputError, match="empty or truncated") as info:
+        read_colmap(broken)
+    assert str(info.value).startswith(str(broken / "cameras.bin"))
+    # text files with no image at all
+    (tmp_path / "images.txt").write_text("# no images\n")
+    (tmp_path / "cameras.txt").write_text(COLMAP_CAMERAS)
+    with pytest.raises(InputError, match="no registered image"):
+        read_colmap(tmp_path)
 
 
 def test_image_names_that_do_not_match(tmp_path, shared_data):

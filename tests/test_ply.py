@@ -113,7 +113,7 @@ def test_ascii_ply_reads(tmp_path):
 def test_round_trip_any_finite_float(tmp_path_factory, values):
     """Every finite float32, subnormals and −0.0 included, survives bit for bit."""
     values = values.copy()
-    values[:, 3:7] += np.float32(1.0) * (np.abs(values[:, 3:7]).sum(axis=1, keepdims=True) == 0)
+    values[:, 3:7][(values[:, 3:7] == 0).all(axis=1)] = 1.0  # no zero quaternion
     g = Gaussians(
         means=torch.from_numpy(values[:, 0:3].copy()),
         quats=torch.from_numpy(values[:, 3:7].copy()),

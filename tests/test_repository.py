@@ -27,3 +27,32 @@ def test_ci_runs_the_readme_test_command():
     _, tests = readme_commands()
     ci = (REPO / ".ci" / "run").read_text()
     assert tests in ci.splitlines()
+
+
+def test_setup_script_second_run_changes_nothing():
+    """scripts/setup.sh is idempotent: on the environment it made, it returns at once."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    import pytest
+
+    venv = REPO / ".venv"
+    if Path(sys.prefix).resolve() != venv.resolve():
+        pytest.skip("the tests are not running in the environment scripts/setup.sh made")
+
+    def freeze() -> str:
+        return subprocess.run(
+            [sys.executable, "-m", "pip", "freeze"], capture_output=True, text=True, check=True
+        ).stdout
+
+    before = freeze()
+    result = subprocess.run(
+        ["bash", str(REPO / "scripts" / "setup.sh")],
+        capture_output=True,
+        text=True,
+        check=True,
+        timeout=60,
+    )
+    assert "is up to date" in result.stdout
+    assert freeze() == before

@@ -30,9 +30,12 @@ _SUPPORTED_MODELS = ("PINHOLE", "SIMPLE_PINHOLE")
 
 def _model_files(sparse_dir: Path) -> str:
     for ext in (".bin", ".txt"):
-        if all(
-            (sparse_dir / f"{stem}{ext}").is_file() for stem in ("cameras", "images", "points3D")
-        ):
+        files = [sparse_dir / f"{stem}{ext}" for stem in ("cameras", "images", "points3D")]
+        if all(file.is_file() for file in files):
+            if ext == ".bin":  # a binary model file starts with its uint64 entry count
+                for file in files:
+                    if file.stat().st_size < 8:
+                        raise InputError(file, "the COLMAP binary file is empty or truncated")
             return "binary" if ext == ".bin" else "text"
     raise InputError(
         sparse_dir,
