@@ -30,7 +30,6 @@ def make_model(root, iterations=(7000, 30000), cameras=True):
     (root / "point_cloud" / "iteration_99").mkdir()  # an unfinished iteration, no PLY
     if cameras:
         write_cameras_json(root / "cameras.json", random_cameras(4, centred=True))
-    (root / "cfg_args").write_text("Namespace(source_path='/data/scene')")
     return root
 
 
