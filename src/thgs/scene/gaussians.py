@@ -12,12 +12,34 @@ from torch import Tensor
 
 from thgs.errors import InputError
 
-__all__ = ["SH_C0", "Gaussians"]
+__all__ = ["SH_C0", "Gaussians", "quaternions_to_matrices"]
 
 SH_C0 = 0.28209479177387814
 """Degree-0 real spherical-harmonics constant: colour = 0.5 + SH_C0 · DC coefficient."""
 
 _SH_COEFFS_PER_DEGREE = {1: 0, 4: 1, 9: 2, 16: 3}
+
+
+def quaternions_to_matrices(quats: Tensor) -> Tensor:
+    """[N, 3, 3] rotation matrices of [N, 4] quaternions (w, x, y, z), normalised first.
+
+    Computed in the quaternions' dtype; column j is the image of the unit vector along axis j.
+    """
+    w, x, y, z = torch.nn.functional.normalize(quats, dim=-1).unbind(-1)
+    return torch.stack(
+        [
+            1 - 2 * (y * y + z * z),
+            2 * (x * y - w * z),
+            2 * (x * z + w * y),
+            2 * (x * y + w * z),
+            1 - 2 * (x * x + z * z),
+            2 * (y * z - w * x),
+            2 * (x * z - w * y),
+            2 * (y * z + w * x),
+            1 - 2 * (x * x + y * y),
+        ],
+        dim=-1,
+    ).reshape(-1, 3, 3)
 
 
 @dataclass(frozen=True, eq=False)
@@ -82,21 +104,7 @@ class Gaussians:
 
     def rotation_matrices(self) -> Tensor:
         """[N, 3, 3] local→world rotations; column j is the world direction of local axis j."""
-        w, x, y, z = self.unit_quats().unbind(-1)
-        return torch.stack(
-            [
-                1 - 2 * (y * y + z * z),
-                2 * (x * y - w * z),
-                2 * (x * z + w * y),
-                2 * (x * y + w * z),
-                1 - 2 * (x * x + z * z),
-                2 * (y * z - w * x),
-                2 * (x * z - w * y),
-                2 * (y * z + w * x),
-                1 - 2 * (x * x + y * y),
-            ],
-            dim=-1,
-        ).reshape(-1, 3, 3)
+        return quaternions_to_matrices(self.quats)
 
     def surface_normals(self) -> Tensor:
         """[N, 3] unit normals in the world frame, sign as given by the rotation.

@@ -1,0 +1,299 @@
+"""Rasterization and splat-back: the CPU backend against a brute-force reference, analytic cases,
+the adjoint identity, gsplat's pure-torch projection, and bad input."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from render_reference import brute_force
+from thgs import Cameras, Gaussians, InputError
+from thgs.render import RasterConfig, project, render, splat_back
+from thgs.scene.gaussians import quaternions_to_matrices
+
+
+def camera(width=48, height=36, focal=40.0, cx=None, cy=None) -> Cameras:
+    """A camera at the origin looking along +z (world = camera frame)."""
+    K = torch.tensor(
+        [
+            [focal, 0, width / 2 if cx is None else cx],
+            [0, focal, height / 2 if cy is None else cy],
+            [0, 0, 1],
+        ],
+        dtype=torch.float64,
+    )
+    return Cameras(
+        torch.eye(4, dtype=torch.float64)[None],
+        K[None],
+        torch.tensor([width]),
+        torch.tensor([height]),
+        ("view.png",),
+    ).check()
+
+
+def tiny_scene(kind: str, n: int = 40, seed: int = 0) -> Gaussians:
+    """Random Gaussians in front of `camera()`, some behind it, large and small, tilted."""
+    g = torch.Generator().manual_seed(seed)
+    z = torch.rand(n, generator=g) * 4 + 2
+    z[:3] = torch.tensor([-1.0, 0.1, 0.15])  # behind the camera and closer than the near plane
+    xy = (torch.rand(n, 2, generator=g) - 0.5) * 3
+    xy[3] = torch.tensor([2.5, 0.0])  # partly outside the image
+    means = torch.cat([xy, z[:, None]], dim=1)
+    scales = torch.rand(n, 2 if kind == "2dgs" else 3, generator=g) * 2.5 - 3.5
+    scales[4] = math.log(1.5)  # a large one covering many tiles
+    quats = torch.randn(n, 4, generator=g)
+    opacities = torch.randn(n, generator=g) * 2 + 1
+    sh = torch.randn(n, 1, 3, generator=g)
+    return Gaussians(means, quats, scales, opacities, sh).check()
+
+
+@pytest.mark.parametrize("kind", ["2dgs", "3dgs"])
+@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("principal", [None, (20.3, 21.7)])
+def test_cpu_matches_brute_force(kind, seed, principal):
+    gaussians = tiny_scene(kind, seed=seed)
+    cam = camera() if principal is None else camera(cx=principal[0], cy=principal[1])
+    config = RasterConfig(tile_size=8)
+    features = torch.randn(
+        len(gaussians), 5, dtype=torch.float64, generator=torch.Generator().manual_seed(seed)
+    )
+    pixel_map = torch.randn(
+        36, 48, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(7)
+    )
+    mask = torch.rand(36, 48, generator=torch.Generator().manual_seed(8)) > 0.3
+    expected = brute_force(gaussians, cam, config, features, pixel_map, mask)
+    assert float(expected["alpha"].max()) > 0.5, "the scene must actually cover pixels"
+    assert int((expected["pixel_counts"] > 0).sum()) > 10
+
+    out = render(gaussians, cam, features, config=config)
+    torch.testing.assert_close(out.image, expected["image"], atol=1e-12, rtol=1e-10)
+    torch.testing.assert_close(out.alpha, expected["alpha"], atol=1e-12, rtol=1e-10)
+    torch.testing.assert_close(out.depth, expected["depth"], atol=1e-10, rtol=1e-10)
+    assert torch.equal(out.max_id, expected["max_id"])
+
+    back = splat_back(gaussians, cam, pixel_map, mask=mask, config=config)
+    for name in ("feature_sums", "weight_sums", "max_weights"):
+        torch.testing.assert_close(getattr(back, name), expected[name], atol=1e-12, rtol=1e-10)
+    assert torch.equal(back.pixel_counts, expected["pixel_counts"])
+    torch.testing.assert_close(back.depths, gaussians.means[:, 2].double())
+
+
+@pytest.mark.parametrize("tile_size", [1, 5, 16, 64])
+def test_tile_size_does_not_change_results(tile_size):
+    gaussians = tiny_scene("2dgs", seed=3)
+    features = gaussians.dc_colors()
+    reference = render(gaussians, camera(), features, config=RasterConfig(tile_size=16))
+    out = render(gaussians, camera(), features, config=RasterConfig(tile_size=tile_size))
+    torch.testing.assert_close(out.image, reference.image, atol=1e-6, rtol=0)
+    assert torch.equal(out.max_id, reference.max_id)
+
+
+def single(kind: str, *, z=5.0, scale=0.1, opacity=0.9, quat=(1.0, 0, 0, 0), xy=(0.0, 0.0)):
+    n_scales = 2 if kind == "2dgs" else 3
+    return Gaussians(
+        means=torch.tensor([[xy[0], xy[1], z]]),
+        quats=torch.tensor([quat]),
+        scales=torch.full((1, n_scales), math.log(scale)),
+        opacities=torch.tensor([math.log(opacity / (1 - opacity))]),
+        sh=torch.zeros(1, 1, 3),
+    )
+
+
+def pixel_offsets(width=64, height=64, centre=(32.0, 32.0)):
+    ys, xs = np.meshgrid(np.arange(height) + 0.5, np.arange(width) + 0.5, indexing="ij")
+    return (xs - centre[0]) ** 2 + (ys - centre[1]) ** 2
+
+
+@pytest.mark.parametrize(
+    ("kind", "scale", "variance"),
+    [
+        # camera-facing surfel, σ = f·s/z = 100·0.1/5 = 2 px: ρ3d = |d|²/4 < ρ2d = 2|d|²
+        ("2dgs", 0.1, 4.0),
+        # a tiny surfel: the 2D low-pass wins, ρ2d = 2|d|², i.e. variance ½ px²
+        ("2dgs", 0.001, 0.5),
+        # a sphere of σ = 2 px plus the 0.3 px² low-pass
+        ("3dgs", 0.1, 4.3),
+    ],
+)
+def test_single_gaussian_by_hand(kind, scale, variance):
+    cam = camera(64, 64, focal=100.0)
+    gaussian = single(kind, scale=scale)
+    out = render(gaussian, cam, torch.ones(1, 1))
+    d2 = pixel_offsets()
+    alpha = np.minimum(0.99, 0.9 * np.exp(-d2 / (2 * variance)))
+    expected = np.where(alpha >= 1 / 255, alpha, 0.0)
+    np.testing.assert_allclose(out.alpha.numpy(), expected, atol=1e-6)
+    back = splat_back(gaussian, cam, torch.ones(64, 64, 1))
+    assert int(back.pixel_counts[0]) == int((expected > 0).sum())
+    assert float(back.max_weights[0]) == pytest.approx(expected.max(), abs=1e-6)
+    assert back.centers[0].tolist() == pytest.approx([32.0, 32.0])
+    assert torch.equal(out.max_id == 0, torch.from_numpy(expected > 0))
+    np.testing.assert_allclose(out.depth.numpy(), np.where(expected > 0, 5.0, 0.0), atol=1e-6)
+
+
+def test_rear_gaussian_is_attenuated_by_the_front_one():
+    cam = camera(64, 64, focal=100.0)
+    front = single("2dgs", z=5.0, scale=0.08, opacity=0.6, xy=(0.05, 0.0))
+    rear = single("2dgs", z=6.0, scale=0.12, opacity=0.8, xy=(-0.05, 0.02))
+    both = Gaussians(
+        *(
+            torch.cat([getattr(front, f), getattr(rear, f)])
+            for f in ("means", "quats", "scales", "opacities", "sh")
+        )
+    )
+    alpha_front = render(front, cam, torch.ones(1, 1)).alpha
+    alpha_rear = render(rear, cam, torch.ones(1, 1)).alpha
+    out = render(both, cam, torch.eye(2))
+    torch.testing.assert_close(out.image[..., 0], alpha_front)
+    torch.testing.assert_close(out.image[..., 1], alpha_rear * (1 - alpha_front))
+    # listed rear first, composited in depth order all the same
+    swapped = Gaussians(
+        *(
+            torch.cat([getattr(rear, f), getattr(front, f)])
+            for f in ("means", "quats", "scales", "opacities", "sh")
+        )
+    )
+    torch.testing.assert_close(render(swapped, cam, torch.eye(2).flip(0)).image, out.image)
+
+
+def test_stop_rule_on_opaque_layers():
+    """Three layers of α = 0.99: T goes 1 → 0.01 → 1e-4 → 1e-6 (plus rounding)."""
+    cam = camera(8, 8, focal=10.0)
+    layers = Gaussians(
+        means=torch.tensor([[0.0, 0, 3], [0, 0, 4], [0, 0, 5]]),
+        quats=torch.tensor([[1.0, 0, 0, 0]] * 3),
+        scales=torch.full((3, 2), math.log(100.0)),
+        opacities=torch.full((3,), 50.0),
+        sh=torch.zeros(3, 1, 3),
+    )
+    features = torch.eye(3, dtype=torch.float64)
+
+    def alpha(transmittance_min):
+        config = RasterConfig(transmittance_min=transmittance_min)
+        out = render(layers, cam, features, config=config)
+        assert bool((out.max_id == 0).all())
+        return out.alpha
+
+    def full(value):
+        return torch.full((8, 8), value, dtype=torch.float64)
+
+    # the layer that would bring T to ≤ transmittance_min is not composited, and none after it
+    torch.testing.assert_close(alpha(0.005), full(0.99))
+    torch.testing.assert_close(alpha(1e-4), full(0.9999))  # T after two = 1e-4 + rounding
+    torch.testing.assert_close(alpha(0.0), full(0.999999))
+
+
+def test_near_plane():
+    cam = camera(16, 16, focal=20.0)
+    close = single("3dgs", z=0.15, scale=0.01)
+    assert float(render(close, cam, torch.ones(1, 1)).alpha.sum()) == 0.0
+    visible = render(close, cam, torch.ones(1, 1), config=RasterConfig(near=0.1))
+    assert float(visible.alpha.max()) > 0.5
+
+
+@pytest.mark.parametrize("kind", ["2dgs", "3dgs"])
+def test_adjoint_identity(kind):
+    gaussians = tiny_scene(kind, n=60, seed=5)
+    cam = camera(40, 30, focal=35.0)
+    generator = torch.Generator().manual_seed(11)
+    f = torch.randn(60, 4, dtype=torch.float64, generator=generator)
+    F = torch.randn(30, 40, 4, dtype=torch.float64, generator=generator)
+    lhs = (render(gaussians, cam, f).image * F).sum()
+    rhs = (f * splat_back(gaussians, cam, F).feature_sums).sum()
+    torch.testing.assert_close(lhs, rhs, rtol=1e-12, atol=1e-12)
+    ones = splat_back(gaussians, cam, torch.ones(30, 40, 1, dtype=torch.float64))
+    torch.testing.assert_close(ones.feature_sums[:, 0], ones.weight_sums)
+    mask = F[..., 0] > 0
+    masked = splat_back(gaussians, cam, F, mask=mask).feature_sums
+    torch.testing.assert_close(masked, splat_back(gaussians, cam, F * mask[..., None]).feature_sums)
+
+
+def test_projection_matches_gsplat_3dgs():
+    torch_impl = pytest.importorskip("gsplat.cuda._torch_impl")
+    gaussians = tiny_scene("3dgs", n=80, seed=9)
+    cam = camera(cx=20.0, cy=15.5)
+    config = RasterConfig(near=0.2)
+    ours = project(gaussians, cam, config)
+    rotations = quaternions_to_matrices(gaussians.quats.double())
+    scaled = rotations * torch.exp(gaussians.scales.double())[:, None]
+    _, means2d, depths, conics, _ = torch_impl._fully_fused_projection(
+        gaussians.means.double(),
+        scaled @ scaled.transpose(1, 2),
+        cam.viewmats.double(),
+        cam.Ks.double(),
+        48,
+        36,
+        eps2d=config.eps2d,
+        near_plane=config.near,
+    )
+    front = ours.depths > config.near
+    torch.testing.assert_close(ours.depths, depths[0])
+    torch.testing.assert_close(ours.centers[front], means2d[0][front])
+    torch.testing.assert_close(ours.params[front, :3], conics[0][front])
+
+
+def test_projection_matches_gsplat_2dgs():
+    torch_impl = pytest.importorskip("gsplat.cuda._torch_impl_2dgs")
+    gaussians = tiny_scene("2dgs", n=80, seed=10)
+    cam = camera(cx=20.0, cy=15.5)
+    ours = project(gaussians, cam, RasterConfig(near=0.2))
+    scales3 = torch.cat([torch.exp(gaussians.scales.double()), torch.ones(80, 1).double()], 1)
+    _, means2d, depths, ray_transforms, _ = torch_impl._fully_fused_projection_2dgs(
+        gaussians.means.double(),
+        gaussians.unit_quats().double(),
+        scales3,
+        cam.viewmats.double(),
+        cam.Ks.double(),
+        48,
+        36,
+        near_plane=0.2,
+    )
+    front = ours.valid
+    torch.testing.assert_close(ours.depths, depths[0])
+    # near-grazing surfels make the filter centre ill-conditioned: relative tolerance
+    torch.testing.assert_close(ours.alpha_centers[front], means2d[0][front], rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(
+        ours.params.reshape(-1, 3, 3)[front], ray_transforms[0][front], rtol=1e-5, atol=1e-6
+    )
+
+
+def test_bad_input():
+    gaussians = tiny_scene("3dgs", n=5)
+    cam = camera(8, 6)
+    with pytest.raises(InputError, match=r"features: must be \[N, C\] with N = 5, got \[4, 3\]"):
+        render(gaussians, cam, torch.zeros(4, 3))
+    with pytest.raises(InputError, match="features: must be floating point"):
+        render(gaussians, cam, torch.zeros(5, 3, dtype=torch.long))
+    with pytest.raises(InputError, match="features: has NaN"):
+        render(gaussians, cam, torch.full((5, 1), float("nan")))
+    with pytest.raises(InputError, match="features: is on meta"):
+        render(gaussians, cam, torch.zeros(5, 1, device="meta"))
+    with pytest.raises(InputError, match=r"pixel_map: must be \[H, W, C\] = \[6, 8, C\]"):
+        splat_back(gaussians, cam, torch.zeros(8, 6, 1))
+    with pytest.raises(InputError, match="mask: must be a bool"):
+        splat_back(gaussians, cam, torch.zeros(6, 8, 1), mask=torch.ones(6, 8))
+    with pytest.raises(InputError, match="expected one camera"):
+        render(
+            gaussians,
+            Cameras(
+                *(
+                    torch.cat([getattr(cam, f)] * 2)
+                    for f in ("viewmats", "Ks", "widths", "heights")
+                ),
+                ("a", "b"),
+            ),
+            torch.zeros(5, 1),
+        )
+    zero = Cameras(cam.viewmats, cam.Ks, torch.tensor([0]), cam.heights, cam.names)
+    with pytest.raises(InputError, match="size 0×6"):
+        render(gaussians, zero, torch.zeros(5, 1))
+    broken = Gaussians(
+        gaussians.means, torch.zeros(5, 4), gaussians.scales, gaussians.opacities, gaussians.sh
+    )
+    with pytest.raises(InputError, match="zero quaternion"):
+        render(broken, cam, torch.zeros(5, 1))
+    with pytest.raises(InputError, match="RasterConfig"):
+        RasterConfig(near=-1.0)
