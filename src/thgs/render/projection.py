@@ -145,21 +145,19 @@ def project(
         params = homography.reshape(-1, 9)
         # Bounding box of the image of the ellipse u² + v² ≤ k² from the dual conic
         # C* = H diag(1, 1, −1/k²) Hᵀ; bounded (entirely in front of the camera) iff C*₂₂ < 0.
-        dual = (
-            homography
-            @ torch.diag_embed(
-                torch.stack(
-                    [torch.ones_like(k_squared), torch.ones_like(k_squared), -1 / k_squared], -1
-                )
+        inv_k2 = 1 / k_squared
+
+        def dual(i: int, j: int) -> Tensor:
+            return (
+                h[:, i, 0] * h[:, j, 0] + h[:, i, 1] * h[:, j, 1] - h[:, i, 2] * h[:, j, 2] * inv_k2
             )
-            @ homography.transpose(1, 2)
-        )
-        bounded = dual[:, 2, 2] < 0
-        safe = torch.where(bounded, dual[:, 2, 2], -torch.ones_like(d))
-        ellipse_x = dual[:, 0, 2] / safe
-        ellipse_y = dual[:, 1, 2] / safe
-        half_x = torch.sqrt((dual[:, 0, 2] ** 2 - dual[:, 0, 0] * safe).clamp_min(0)) / safe.abs()
-        half_y = torch.sqrt((dual[:, 1, 2] ** 2 - dual[:, 1, 1] * safe).clamp_min(0)) / safe.abs()
+
+        dual_22, dual_02, dual_12 = dual(2, 2), dual(0, 2), dual(1, 2)
+        bounded = dual_22 < 0
+        safe = torch.where(bounded, dual_22, -torch.ones_like(d))
+        ellipse_x, ellipse_y = dual_02 / safe, dual_12 / safe
+        half_x = torch.sqrt((dual_02**2 - dual(0, 0) * safe).clamp_min(0)) / safe.abs()
+        half_y = torch.sqrt((dual_12**2 - dual(1, 1) * safe).clamp_min(0)) / safe.abs()
         infinite = torch.full_like(half_x, math.inf)
         half_x = torch.where(bounded, half_x, infinite)
         half_y = torch.where(bounded, half_y, infinite)
