@@ -1,0 +1,225 @@
+"""2D guidance in LangSplat's layout: multi-level SAM masks and one feature row per mask.
+
+Per view ``<stem>``, in a ``language_features/`` folder::
+
+    <stem>_s.npy   float32 [4, H, W]   mask id per pixel for the levels default, s, m, l; −1 = none
+    <stem>_f.npy   float32 [n, D]      one (unit) feature row per mask
+
+Mask ids are global row indices into ``_f.npy``, offset level after level: the ``default`` masks
+take rows ``0 … n_default−1``, the ``s`` masks the next ``n_s`` rows, and so on. This is what
+LangSplat writes and what THGS, OpenGaussian, Occam's LGS and Dr. Splat read.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from thgs._atomic import atomic_output
+from thgs.errors import InputError
+from thgs.scene import Cameras
+
+__all__ = [
+    "LEVELS",
+    "ViewGuidance",
+    "load_guidance",
+    "read_view_guidance",
+    "resample_segments",
+    "write_view_guidance",
+]
+
+logger = logging.getLogger(__name__)
+
+LEVELS = ("default", "s", "m", "l")
+"""Mask levels in file order: SAM's pooled masks, then its small, medium and large outputs."""
+
+
+@dataclass(frozen=True, eq=False)
+class ViewGuidance:
+    """The masks and mask features of one view.
+
+    Attributes:
+        stem: the view's image stem.
+        segments: [4, H, W] int32 global mask id per pixel and level (``LEVELS`` order); −1 = none.
+            ``segments[k, y, x] = i`` means pixel (x, y) lies in mask i at level k, whose feature
+            is ``features[i]``.
+        features: [n, D] float32 mask features (CLIP or the synthetic oracle's text space).
+    """
+
+    stem: str
+    segments: np.ndarray
+    features: np.ndarray
+
+    @property
+    def height(self) -> int:
+        return int(self.segments.shape[1])
+
+    @property
+    def width(self) -> int:
+        return int(self.segments.shape[2])
+
+    def level_ids(self, level: int) -> np.ndarray:
+        """The sorted mask ids present at ``level`` (0–3)."""
+        ids = np.unique(self.segments[level])
+        return ids[ids >= 0]
+
+    def check(self, source: str = "ViewGuidance") -> ViewGuidance:
+        """Verify the layout; raise :class:`InputError` naming ``source``.
+
+        Invariants: segments [4, H, W] integer-valued ≥ −1 and < n; features [n, D] finite; the
+        ids of each level come after those of the previous levels (LangSplat's offsets).
+        """
+        if self.segments.ndim != 3 or self.segments.shape[0] != 4:
+            raise InputError(source, f"segments must be [4, H, W], got {list(self.segments.shape)}")
+        if self.features.ndim != 2:
+            raise InputError(source, f"features must be [n, D], got {list(self.features.shape)}")
+        n = self.features.shape[0]
+        if not np.isfinite(self.features).all():
+            raise InputError(source, "features have NaN or infinite values")
+        low, high = int(self.segments.min()), int(self.segments.max())
+        if low < -1 or high >= n:
+            raise InputError(
+                source, f"mask ids range over [{low}, {high}] but there are {n} feature rows"
+            )
+        previous_max = -1
+        for level, name in enumerate(LEVELS):
+            ids = self.level_ids(level)
+            if len(ids) and ids[0] <= previous_max:
+                raise InputError(
+                    source,
+                    f"level {name!r} uses mask id {int(ids[0])}, not after the previous levels' "
+                    f"ids (up to {previous_max}); expected LangSplat's level offsets",
+                )
+            if len(ids):
+                previous_max = int(ids[-1])
+        return self
+
+
+def _paths(folder: Path, stem: str) -> tuple[Path, Path]:
+    return folder / f"{stem}_s.npy", folder / f"{stem}_f.npy"
+
+
+def _load(path: Path) -> np.ndarray:
+    if not path.is_file():
+        raise InputError(path, "no such file")
+    try:
+        return np.load(path, allow_pickle=False)
+    except (ValueError, OSError, EOFError) as exc:
+        raise InputError(path, f"not a readable .npy file ({exc})") from exc
+
+
+def read_view_guidance(folder: str | os.PathLike[str], stem: str) -> ViewGuidance:
+    """Read ``<stem>_s.npy`` and ``<stem>_f.npy`` from ``folder`` (LangSplat's layout).
+
+    Raises:
+        InputError: a missing, truncated or malformed file, non-integer ids, ids outside the
+            feature rows, levels out of LangSplat's order.
+    """
+    folder = Path(folder)
+    segments_path, features_path = _paths(folder, stem)
+    segments = _load(segments_path)
+    features = _load(features_path)
+    if segments.ndim != 3 or segments.shape[0] != 4:
+        raise InputError(
+            segments_path, f"expected [4, H, W] masks, got shape {list(segments.shape)}"
+        )
+    if not np.issubdtype(segments.dtype, np.number):
+        raise InputError(segments_path, f"expected numbers, got dtype {segments.dtype}")
+    if not np.array_equal(segments, np.round(segments)):
+        raise InputError(segments_path, "mask ids must be whole numbers")
+    if features.ndim != 2 or not np.issubdtype(features.dtype, np.floating):
+        raise InputError(
+            features_path,
+            f"expected float [n, D] features, got {features.dtype} {list(features.shape)}",
+        )
+    guidance = ViewGuidance(
+        stem, segments.astype(np.int32), features.astype(np.float32, copy=False)
+    )
+    return guidance.check(source=str(segments_path))
+
+
+def write_view_guidance(folder: str | os.PathLike[str], guidance: ViewGuidance) -> None:
+    """Write one view in LangSplat's layout (float32 files), each file atomically.
+
+    The feature file is written first, so a reader never finds masks without their features.
+
+    Raises:
+        InputError: the guidance fails :meth:`ViewGuidance.check` (nothing is written then).
+    """
+    folder = Path(folder)
+    segments_path, features_path = _paths(folder, guidance.stem)
+    guidance.check(source=f"guidance to write to {segments_path}")
+    with atomic_output(features_path) as handle:
+        np.save(handle, guidance.features.astype(np.float32))
+    with atomic_output(segments_path) as handle:
+        np.save(handle, guidance.segments.astype(np.float32))
+
+
+def resample_segments(segments: np.ndarray, height: int, width: int) -> np.ndarray:
+    """Nearest-neighbour resize of [4, H, W] mask ids to [4, height, width].
+
+    Output pixel (x, y) takes the input pixel under its centre: ``floor((x + 0.5) · W / width)``,
+    the same pixel-centre convention as the cameras (docs/conventions.md).
+    """
+    _, src_h, src_w = segments.shape
+    rows = np.minimum(((np.arange(height) + 0.5) * src_h / height).astype(np.int64), src_h - 1)
+    cols = np.minimum(((np.arange(width) + 0.5) * src_w / width).astype(np.int64), src_w - 1)
+    return segments[:, rows[:, None], cols[None, :]]
+
+
+def load_guidance(
+    folder: str | os.PathLike[str], cameras: Cameras, *, resize: bool = False
+) -> list[ViewGuidance]:
+    """The guidance of every camera, matched by image stem, at the cameras' resolution.
+
+    Args:
+        folder: the ``language_features`` folder.
+        cameras: :class:`thgs.Cameras`; view i's files are ``<cameras.stems[i]>_{s,f}.npy``.
+        resize: if a view's masks are not at its camera's size, resample them (nearest
+            neighbour, :func:`resample_segments`) instead of raising. The reference code silently
+            assumes equal sizes; thgs never does.
+
+    Returns:
+        one :class:`ViewGuidance` per camera, in camera order.
+
+    Raises:
+        InputError: a view's files are missing or malformed, sizes differ without ``resize``,
+            or views disagree on the feature dimension.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise InputError(folder, "language features folder not found")
+    missing = [stem for stem in cameras.stems if not (folder / f"{stem}_s.npy").is_file()]
+    if missing:
+        raise InputError(
+            folder,
+            f"no guidance for {len(missing)} of {len(cameras)} views (first: {missing[:5]}); "
+            "files must be named <image stem>_s.npy / _f.npy",
+        )
+    views = []
+    for i, stem in enumerate(cameras.stems):
+        view = read_view_guidance(folder, stem)
+        height, width = int(cameras.heights[i]), int(cameras.widths[i])
+        if (view.height, view.width) != (height, width):
+            if not resize:
+                raise InputError(
+                    folder / f"{stem}_s.npy",
+                    f"masks are {view.width}×{view.height} but the camera is {width}×{height}; "
+                    "pass resize=True to resample them (nearest neighbour)",
+                )
+            view = ViewGuidance(
+                stem, resample_segments(view.segments, height, width), view.features
+            )
+        if views and view.features.shape[1] != views[0].features.shape[1]:
+            raise InputError(
+                folder / f"{stem}_f.npy",
+                f"feature dimension {view.features.shape[1]}, other views have "
+                f"{views[0].features.shape[1]}",
+            )
+        views.append(view)
+    logger.info("read guidance for %d views from %s", len(views), folder)
+    return views
