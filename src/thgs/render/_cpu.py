@@ -73,25 +73,39 @@ def _alpha(g, px, py, kind, centers, params, opacities, filter_inv_square, alpha
     return min(alpha_max, opacities[g] * math.exp(-sigma))
 
 
+@numba.njit(cache=True)
+def _composite_pixel(px, py, first, last, order, view, settings, ids, weights):
+    """Composite pixel (px, py) front to back over ``order[first:last]``.
+
+    Writes the composited Gaussians and their weights ``w = α·T`` into ``ids`` and ``weights``
+    (in depth order) and returns how many there are.
+    """
+    kind, centers, params, opacities, bounds = view
+    alpha_min, alpha_max, t_min, filter_inv_square = settings
+    transmittance = 1.0
+    count = 0
+    for p in range(first, last):
+        g = order[p]
+        if px < bounds[g, 0] or px > bounds[g, 1] or py < bounds[g, 2] or py > bounds[g, 3]:
+            continue
+        a = _alpha(
+            g, px + 0.5, py + 0.5, kind, centers, params, opacities, filter_inv_square, alpha_max
+        )
+        if a < alpha_min:
+            continue
+        after = transmittance * (1.0 - a)
+        if after <= t_min:
+            break
+        ids[count] = g
+        weights[count] = a * transmittance
+        count += 1
+        transmittance = after
+    return count
+
+
 @numba.njit(parallel=True, cache=True)
 def _render_kernel(
-    order,
-    tile_start,
-    tiles_x,
-    tile_size,
-    width,
-    height,
-    kind,
-    centers,
-    params,
-    opacities,
-    bounds,
-    depths,
-    features,
-    alpha_min,
-    alpha_max,
-    t_min,
-    filter_inv_square,
+    order, tile_start, tiles_x, tile_size, width, height, view, settings, depths, features
 ):
     channels = features.shape[1]
     image = np.zeros((height, width, channels))
@@ -100,37 +114,16 @@ def _render_kernel(
     max_id = np.full((height, width), -1, dtype=np.int64)
     tiles_y = (height + tile_size - 1) // tile_size
     for tile in numba.prange(tiles_x * tiles_y):
+        first, last = tile_start[tile], tile_start[tile + 1]
+        ids = np.empty(last - first, dtype=np.int64)
+        weights = np.empty(last - first)
         ty, tx = tile // tiles_x, tile % tiles_x
         for py in range(ty * tile_size, min((ty + 1) * tile_size, height)):
             for px in range(tx * tile_size, min((tx + 1) * tile_size, width)):
-                transmittance = 1.0
+                count = _composite_pixel(px, py, first, last, order, view, settings, ids, weights)
                 best = 0.0
-                for p in range(tile_start[tile], tile_start[tile + 1]):
-                    g = order[p]
-                    if (
-                        px < bounds[g, 0]
-                        or px > bounds[g, 1]
-                        or py < bounds[g, 2]
-                        or py > bounds[g, 3]
-                    ):
-                        continue
-                    a = _alpha(
-                        g,
-                        px + 0.5,
-                        py + 0.5,
-                        kind,
-                        centers,
-                        params,
-                        opacities,
-                        filter_inv_square,
-                        alpha_max,
-                    )
-                    if a < alpha_min:
-                        continue
-                    after = transmittance * (1.0 - a)
-                    if after <= t_min:
-                        break
-                    w = a * transmittance
+                for i in range(count):
+                    g, w = ids[i], weights[i]
                     for c in range(channels):
                         image[py, px, c] += w * features[g, c]
                     alpha[py, px] += w
@@ -138,7 +131,6 @@ def _render_kernel(
                     if w > best:
                         best = w
                         max_id[py, px] = g
-                    transmittance = after
                 if alpha[py, px] > 0.0:
                     depth[py, px] /= alpha[py, px]
     return image, alpha, depth, max_id
@@ -146,25 +138,9 @@ def _render_kernel(
 
 @numba.njit(cache=True)
 def _splat_back_kernel(
-    order,
-    tile_start,
-    tiles_x,
-    tile_size,
-    width,
-    height,
-    kind,
-    centers,
-    params,
-    opacities,
-    bounds,
-    pixel_map,
-    mask,
-    alpha_min,
-    alpha_max,
-    t_min,
-    filter_inv_square,
+    order, tile_start, tiles_x, tile_size, width, height, view, settings, pixel_map, mask
 ):
-    n = centers.shape[0]
+    n = view[1].shape[0]
     channels = pixel_map.shape[2]
     feature_sums = np.zeros((n, channels))
     weight_sums = np.zeros(n)
@@ -172,45 +148,23 @@ def _splat_back_kernel(
     pixel_counts = np.zeros(n, dtype=np.int64)
     tiles_y = (height + tile_size - 1) // tile_size
     for tile in range(tiles_x * tiles_y):
+        first, last = tile_start[tile], tile_start[tile + 1]
+        ids = np.empty(last - first, dtype=np.int64)
+        weights = np.empty(last - first)
         ty, tx = tile // tiles_x, tile % tiles_x
         for py in range(ty * tile_size, min((ty + 1) * tile_size, height)):
             for px in range(tx * tile_size, min((tx + 1) * tile_size, width)):
                 if not mask[py, px]:
                     continue
-                transmittance = 1.0
-                for p in range(tile_start[tile], tile_start[tile + 1]):
-                    g = order[p]
-                    if (
-                        px < bounds[g, 0]
-                        or px > bounds[g, 1]
-                        or py < bounds[g, 2]
-                        or py > bounds[g, 3]
-                    ):
-                        continue
-                    a = _alpha(
-                        g,
-                        px + 0.5,
-                        py + 0.5,
-                        kind,
-                        centers,
-                        params,
-                        opacities,
-                        filter_inv_square,
-                        alpha_max,
-                    )
-                    if a < alpha_min:
-                        continue
-                    after = transmittance * (1.0 - a)
-                    if after <= t_min:
-                        break
-                    w = a * transmittance
+                count = _composite_pixel(px, py, first, last, order, view, settings, ids, weights)
+                for i in range(count):
+                    g, w = ids[i], weights[i]
                     for c in range(channels):
                         feature_sums[g, c] += w * pixel_map[py, px, c]
                     weight_sums[g] += w
                     if w > max_weights[g]:
                         max_weights[g] = w
                     pixel_counts[g] += 1
-                    transmittance = after
     return feature_sums, weight_sums, max_weights, pixel_counts
 
 
@@ -227,19 +181,24 @@ def _sorted_tiles(projection: Projection, config: RasterConfig):
     return gaussians[order], tile_start.astype(np.int64), tiles_x, bounds
 
 
-def _arrays(projection: Projection):
+def _view(projection: Projection, bounds: np.ndarray):
+    """The projection as the kernels take it: (kind, α centres, params, opacities, bounds)."""
     return (
         _KIND[projection.kind],
         np.ascontiguousarray(projection.alpha_centers.cpu().numpy()),
         np.ascontiguousarray(projection.params.cpu().numpy()),
         np.ascontiguousarray(projection.opacities.cpu().numpy()),
+        bounds,
     )
+
+
+def _settings(config: RasterConfig):
+    return (config.alpha_min, config.alpha_max, config.transmittance_min, config.filter_inv_square)
 
 
 def render_cpu(projection: Projection, features: np.ndarray, config: RasterConfig):
     """Forward pass; returns NumPy float64 image [H,W,C], alpha, depth [H,W], int64 max_id [H,W]."""
     order, tile_start, tiles_x, bounds = _sorted_tiles(projection, config)
-    kind, centers, params, opacities = _arrays(projection)
     return _render_kernel(
         order,
         tile_start,
@@ -247,17 +206,10 @@ def render_cpu(projection: Projection, features: np.ndarray, config: RasterConfi
         config.tile_size,
         projection.width,
         projection.height,
-        kind,
-        centers,
-        params,
-        opacities,
-        bounds,
+        _view(projection, bounds),
+        _settings(config),
         np.ascontiguousarray(projection.depths.cpu().numpy()),
         np.ascontiguousarray(features, dtype=np.float64),
-        config.alpha_min,
-        config.alpha_max,
-        config.transmittance_min,
-        config.filter_inv_square,
     )
 
 
@@ -266,7 +218,6 @@ def splat_back_cpu(
 ):
     """Adjoint pass; returns NumPy feature sums [N,C], weight sums, max weights [N], counts [N]."""
     order, tile_start, tiles_x, bounds = _sorted_tiles(projection, config)
-    kind, centers, params, opacities = _arrays(projection)
     return _splat_back_kernel(
         order,
         tile_start,
@@ -274,15 +225,8 @@ def splat_back_cpu(
         config.tile_size,
         projection.width,
         projection.height,
-        kind,
-        centers,
-        params,
-        opacities,
-        bounds,
+        _view(projection, bounds),
+        _settings(config),
         np.ascontiguousarray(pixel_map, dtype=np.float64),
         np.ascontiguousarray(mask, dtype=np.bool_),
-        config.alpha_min,
-        config.alpha_max,
-        config.transmittance_min,
-        config.filter_inv_square,
     )

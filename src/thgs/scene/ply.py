@@ -29,6 +29,7 @@ __all__ = ["read_ply", "write_ply"]
 
 logger = logging.getLogger(__name__)
 
+_BASE_PROPERTIES = ("x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity")
 _REST_FOR_DEGREE = {0: 0, 9: 1, 24: 2, 45: 3}
 _NUMBERED = re.compile(r"^(f_dc|f_rest|scale|rot)_(\d+)$")
 
@@ -79,21 +80,7 @@ def read_ply(path: str | os.PathLike[str]) -> Gaussians:
     if vertex.count == 0:
         raise InputError(path, "the PLY holds no Gaussians (vertex count 0)")
 
-    required = [
-        "x",
-        "y",
-        "z",
-        "f_dc_0",
-        "f_dc_1",
-        "f_dc_2",
-        "opacity",
-        "rot_0",
-        "rot_1",
-        "rot_2",
-        "rot_3",
-        "scale_0",
-        "scale_1",
-    ]
+    required = [*_BASE_PROPERTIES, "rot_0", "rot_1", "rot_2", "rot_3", "scale_0", "scale_1"]
     missing = [name for name in required if name not in names]
     if missing:
         raise InputError(
@@ -138,19 +125,7 @@ def read_ply(path: str | os.PathLike[str]) -> Gaussians:
     sh[:, 0] = column_block(["f_dc_0", "f_dc_1", "f_dc_2"])
     if k > 1:
         sh[:, 1:] = column_block(rest_names).reshape(n, 3, k - 1).transpose(1, 2)
-    standard = {
-        "x",
-        "y",
-        "z",
-        "f_dc_0",
-        "f_dc_1",
-        "f_dc_2",
-        "opacity",
-        *scale_names,
-        *rot_names,
-        *rest_names,
-        *normal_names,
-    }
+    standard = {*_BASE_PROPERTIES, *scale_names, *rot_names, *rest_names, *normal_names}
     non_float = [name for name in names if name in standard and data[name].dtype.str[1:] != "f4"]
     if non_float:
         logger.info("%s: converting %s to float32", path, non_float)
