@@ -192,14 +192,16 @@ def _view(projection: Projection, bounds: np.ndarray):
     )
 
 
-def _settings(config: RasterConfig):
-    return (config.alpha_min, config.alpha_max, config.transmittance_min, config.filter_inv_square)
-
-
-def render_cpu(projection: Projection, features: np.ndarray, config: RasterConfig):
-    """Forward pass; returns NumPy float64 image [H,W,C], alpha, depth [H,W], int64 max_id [H,W]."""
+def _kernel_inputs(projection: Projection, config: RasterConfig) -> tuple:
+    """The arguments both kernels start with: sorted pairs, tiles, image size, view, settings."""
     order, tile_start, tiles_x, bounds = _sorted_tiles(projection, config)
-    return _render_kernel(
+    settings = (
+        config.alpha_min,
+        config.alpha_max,
+        config.transmittance_min,
+        config.filter_inv_square,
+    )
+    return (
         order,
         tile_start,
         tiles_x,
@@ -207,7 +209,14 @@ def render_cpu(projection: Projection, features: np.ndarray, config: RasterConfi
         projection.width,
         projection.height,
         _view(projection, bounds),
-        _settings(config),
+        settings,
+    )
+
+
+def render_cpu(projection: Projection, features: np.ndarray, config: RasterConfig):
+    """Forward pass; returns NumPy float64 image [H,W,C], alpha, depth [H,W], int64 max_id [H,W]."""
+    return _render_kernel(
+        *_kernel_inputs(projection, config),
         np.ascontiguousarray(projection.depths.cpu().numpy()),
         np.ascontiguousarray(features, dtype=np.float64),
     )
@@ -217,16 +226,8 @@ def splat_back_cpu(
     projection: Projection, pixel_map: np.ndarray, mask: np.ndarray, config: RasterConfig
 ):
     """Adjoint pass; returns NumPy feature sums [N,C], weight sums, max weights [N], counts [N]."""
-    order, tile_start, tiles_x, bounds = _sorted_tiles(projection, config)
     return _splat_back_kernel(
-        order,
-        tile_start,
-        tiles_x,
-        config.tile_size,
-        projection.width,
-        projection.height,
-        _view(projection, bounds),
-        _settings(config),
+        *_kernel_inputs(projection, config),
         np.ascontiguousarray(pixel_map, dtype=np.float64),
         np.ascontiguousarray(mask, dtype=np.bool_),
     )
