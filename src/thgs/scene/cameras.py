@@ -13,12 +13,20 @@ from torch import Tensor
 
 from thgs.errors import InputError
 
-__all__ = ["Cameras", "round_half_up"]
+__all__ = ["Cameras", "round_half_up", "viewmat_from_pose"]
 
 
 def round_half_up(value: float) -> int:
     """Round to the nearest integer, halves up (164.5 → 165), as image resizers do."""
     return math.floor(value + 0.5)
+
+
+def viewmat_from_pose(rotation: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """[4, 4] world→camera from a [3, 3] camera→world rotation and the [3] camera centre."""
+    viewmat = np.eye(4)
+    viewmat[:3, :3] = rotation.T
+    viewmat[:3, 3] = -rotation.T @ centre
+    return viewmat
 
 
 @dataclass(frozen=True, eq=False)
@@ -51,6 +59,24 @@ class Cameras:
 
     def __len__(self) -> int:
         return int(self.viewmats.shape[0])
+
+    @classmethod
+    def from_lists(
+        cls,
+        viewmats: Sequence[np.ndarray],
+        Ks: Sequence,
+        widths: Sequence[int],
+        heights: Sequence[int],
+        names: Sequence[str],
+    ) -> Cameras:
+        """Cameras from per-camera [4, 4] viewmats, [3, 3] Ks, sizes and names (not checked)."""
+        return cls(
+            viewmats=torch.tensor(np.stack(viewmats), dtype=torch.float64),
+            Ks=torch.tensor(np.asarray(Ks), dtype=torch.float64),
+            widths=torch.tensor(widths, dtype=torch.int64),
+            heights=torch.tensor(heights, dtype=torch.int64),
+            names=tuple(names),
+        )
 
     @property
     def stems(self) -> tuple[str, ...]:

@@ -18,12 +18,11 @@ import os
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from thgs._atomic import atomic_output
 from thgs.errors import InputError
 from thgs.scene._json import get_matrix, get_number, load_json
-from thgs.scene.cameras import Cameras
+from thgs.scene.cameras import Cameras, viewmat_from_pose
 
 __all__ = ["read_cameras_json", "write_cameras_json"]
 
@@ -63,21 +62,12 @@ def read_cameras_json(path: str | os.PathLike[str]) -> Cameras:
             or np.linalg.det(rotation) < 0
         ):
             raise InputError(path, f"{where}: 'rotation' is not a proper rotation matrix")
-        viewmat = np.eye(4)
-        viewmat[:3, :3] = rotation.T
-        viewmat[:3, 3] = -rotation.T @ position
-        viewmats.append(viewmat)
+        viewmats.append(viewmat_from_pose(rotation, position))
         Ks.append([[fx, 0.0, width / 2], [0.0, fy, height / 2], [0.0, 0.0, 1.0]])
         widths.append(int(width))
         heights.append(int(height))
         names.append(entry["img_name"])
-    cameras = Cameras(
-        viewmats=torch.tensor(np.stack(viewmats), dtype=torch.float64),
-        Ks=torch.tensor(Ks, dtype=torch.float64),
-        widths=torch.tensor(widths, dtype=torch.int64),
-        heights=torch.tensor(heights, dtype=torch.int64),
-        names=tuple(names),
-    )
+    cameras = Cameras.from_lists(viewmats, Ks, widths, heights, names)
     return cameras.check(source=str(path))
 
 

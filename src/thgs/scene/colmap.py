@@ -15,7 +15,6 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from thgs.errors import InputError
 from thgs.scene.cameras import Cameras
@@ -111,13 +110,7 @@ def read_colmap(
         widths.append(camera.width)
         heights.append(camera.height)
         names.append(image.name)
-    cameras = Cameras(
-        viewmats=torch.tensor(np.stack(viewmats), dtype=torch.float64),
-        Ks=torch.tensor(Ks, dtype=torch.float64),
-        widths=torch.tensor(widths, dtype=torch.int64),
-        heights=torch.tensor(heights, dtype=torch.int64),
-        names=tuple(names),
-    ).check(source=str(sparse_dir))
+    cameras = Cameras.from_lists(viewmats, Ks, widths, heights, names).check(source=str(sparse_dir))
     if images_dir is not None:
         return fit_to_images(cameras, images_dir, scale=scale)
     return cameras if scale == 1.0 else cameras.scaled(scale)

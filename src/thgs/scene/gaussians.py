@@ -170,7 +170,7 @@ class Gaussians:
                 raise InputError(source, f"{name} must be {list(shape)}, got {list(tensor.shape)}")
         if (
             self.scales.ndim != 2
-            or self.scales.shape != (n, self.scales.shape[-1])
+            or self.scales.shape[0] != n
             or (self.scales.shape[-1] not in (2, 3))
         ):
             raise InputError(

@@ -24,13 +24,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch
 from PIL import Image, UnidentifiedImageError
 
 from thgs._atomic import atomic_output
 from thgs.errors import InputError
 from thgs.scene._json import get_matrix, get_number, load_json
-from thgs.scene.cameras import Cameras
+from thgs.scene.cameras import Cameras, viewmat_from_pose
 from thgs.scene.images import image_candidates
 
 __all__ = ["read_transforms_json", "write_transforms_json"]
@@ -176,21 +175,12 @@ def read_transforms_json(
         if applied is not None and undo_applied_transform:
             camtoworld = np.linalg.inv(applied) @ camtoworld
         camtoworld = camtoworld @ OPENGL_TO_OPENCV
-        viewmat = np.eye(4)
-        viewmat[:3, :3] = camtoworld[:3, :3].T
-        viewmat[:3, 3] = -camtoworld[:3, :3].T @ camtoworld[:3, 3]
-        viewmats.append(viewmat)
+        viewmats.append(viewmat_from_pose(camtoworld[:3, :3], camtoworld[:3, 3]))
         Ks.append(K)
         widths.append(width)
         heights.append(height)
         names.append(name)
-    cameras = Cameras(
-        viewmats=torch.tensor(np.stack(viewmats), dtype=torch.float64),
-        Ks=torch.tensor(Ks, dtype=torch.float64),
-        widths=torch.tensor(widths, dtype=torch.int64),
-        heights=torch.tensor(heights, dtype=torch.int64),
-        names=tuple(names),
-    )
+    cameras = Cameras.from_lists(viewmats, Ks, widths, heights, names)
     return cameras.check(source=str(path))
 
 
