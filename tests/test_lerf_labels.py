@@ -8,7 +8,16 @@ import numpy as np
 import pytest
 
 from thgs import InputError
-from thgs.eval import rasterize_polygon, read_lerf_labels
+from thgs.eval import (
+    FrameLabels,
+    LabelledObject,
+    mask_to_polygons,
+    rasterize_polygon,
+    read_lerf_labels,
+    write_lerf_labels,
+)
+
+REAL_FILES = ("teatime/frame_00002.json", "waldo_kitchen/frame_00053.json")
 
 
 def point_in_polygon(x, y, vertices):
@@ -122,3 +131,147 @@ def test_bad_label_files(tmp_path, document, message):
     with pytest.raises(InputError, match=message) as info:
         read_lerf_labels(path)
     assert str(info.value).startswith(str(path))
+
+
+def assert_same_objects(a, b):
+    assert (a.image_name, a.width, a.height) == (b.image_name, b.width, b.height)
+    assert len(a.objects) == len(b.objects)
+    for x, y in zip(a.objects, b.objects):
+        assert (x.category, x.group, x.bbox) == (y.category, y.group, y.bbox)
+        np.testing.assert_array_equal(x.polygon, y.polygon)
+
+
+def test_groups_of_the_real_files(shared_data):
+    kitchen = read_lerf_labels(shared_data / "lerf_ovs_labels" / REAL_FILES[1])
+    # as stored: the three knives are groups 1-3, then 4, 5, 6, and two objects back in group 1
+    assert [obj.group for obj in kitchen.objects] == [1, 2, 3, 4, 5, 6, 1, 1]
+    teatime = read_lerf_labels(shared_data / "lerf_ovs_labels" / REAL_FILES[0])
+    assert [obj.group for obj in teatime.objects] == [1] * 11
+
+
+@pytest.mark.parametrize("name", REAL_FILES)
+def test_real_files_write_back_byte_for_byte(shared_data, tmp_path, name):
+    source = shared_data / "lerf_ovs_labels" / name
+    frame = read_lerf_labels(source)
+    target = tmp_path / "out.json"
+    write_lerf_labels(target, frame)
+    assert_same_objects(read_lerf_labels(target), frame)
+    assert target.read_bytes() == source.read_bytes()
+
+
+def key_paths(document):
+    """Every key path in document order, lists reduced to their first element's keys."""
+    if isinstance(document, dict):
+        return [(key, key_paths(value)) for key, value in document.items()]
+    if isinstance(document, list) and document and isinstance(document[0], dict):
+        return [key_paths(entry) for entry in document]
+    return type(document).__name__
+
+
+def test_written_layout_matches_the_real_file(shared_data, tmp_path):
+    real = json.loads((shared_data / "lerf_ovs_labels" / REAL_FILES[1]).read_text())
+    square = np.array([[1.0, 1.0], [4.0, 1.0], [4.0, 3.0], [1.0, 3.0]])
+    frame = FrameLabels(
+        "frame_00001.jpg",
+        20,
+        10,
+        tuple(LabelledObject(f"thing {i}", square + i, (1.0 + i, 1.0 + i, 4.0 + i, 3.0 + i), i)
+              for i in range(8)),
+    )  # fmt: skip
+    path = tmp_path / "frame_00001.json"
+    write_lerf_labels(path, frame)
+    written = json.loads(path.read_text())
+    # same keys in the same order, same value types (int group/depth, float area/layer/bbox)
+    assert key_paths(written) == key_paths(real)
+    assert list(written["info"]) == ["name", "width", "height", "depth", "note"]
+    assert written["info"] == {
+        "name": "frame_00001.jpg", "width": 20, "height": 10, "depth": 3, "note": ""
+    }  # fmt: skip
+    first = written["objects"][0]
+    assert list(first) == [
+        "category", "group", "segmentation", "area", "layer", "bbox", "iscrowd", "note"
+    ]  # fmt: skip
+    assert first["area"] == 6.0 and first["bbox"] == [1.0, 1.0, 4.0, 3.0]
+    assert [obj["layer"] for obj in written["objects"]] == [float(i) for i in range(1, 9)]
+    assert all(obj["iscrowd"] == 0 and obj["note"] == "" for obj in written["objects"])
+    assert path.read_bytes().startswith(b'{\r\n    "info": {\r\n        "name": "frame_00001.jpg"')
+
+
+def test_masks_round_trip_through_label_files(tmp_path):
+    rng = np.random.default_rng(3)
+    height, width = 40, 60
+    cup = np.zeros((height, width), dtype=bool)
+    cup[5:25, 10:30] = True
+    cup[10:15, 15:20] = False  # a hole: still one polygon
+    saucer = np.zeros_like(cup)
+    saucer[30:38, 5:58] = True
+    speckle = rng.random((height, width)) < 0.02
+    objects = []
+    for group, (category, mask) in enumerate(
+        [("cup", cup), ("saucer", saucer), ("crumbs", speckle)], start=1
+    ):
+        for polygon in mask_to_polygons(mask):
+            low, high = polygon.min(axis=0), polygon.max(axis=0)
+            bbox = (low[0], low[1], high[0], high[1])
+            objects.append(LabelledObject(category, polygon, bbox, group))
+    frame = FrameLabels("view_000.png", width, height, tuple(objects))
+    path = tmp_path / "view_000.json"
+    write_lerf_labels(path, frame)
+    back = read_lerf_labels(path)
+    assert_same_objects(back, frame)
+    for category, mask in [("cup", cup), ("saucer", saucer), ("crumbs", speckle)]:
+        np.testing.assert_array_equal(back.category_mask(category), mask)
+    areas = [obj["area"] for obj in json.loads(path.read_text())["objects"]]
+    assert areas[:2] == [375.0, 424.0]  # 20·20 − 5·5 (the hole) and 8·53 pixels
+
+
+def test_group_defaults_and_non_ascii(tmp_path):
+    document = {
+        "info": {"name": "a.jpg", "width": 10, "height": 10},
+        "objects": [
+            {"category": "tasse à café", "segmentation": [[0, 0], [2, 0], [2, 2]]},
+            {"category": "b", "group": None, "segmentation": [[0, 0], [2, 0], [2, 2]]},
+            {"category": "c", "group": 7, "segmentation": [[0, 0], [2, 0], [2, 2]]},
+        ],
+    }
+    path = tmp_path / "a.json"
+    path.write_text(json.dumps(document), encoding="utf-8")
+    frame = read_lerf_labels(path)
+    assert [obj.group for obj in frame.objects] == [0, 0, 7]
+    write_lerf_labels(tmp_path / "b.json", frame)
+    assert "tasse à café" in (tmp_path / "b.json").read_text(encoding="utf-8")
+    assert_same_objects(read_lerf_labels(tmp_path / "b.json"), frame)
+    assert frame.objects[0].bbox == (0.0, 0.0, 2.0, 2.0)
+
+
+@pytest.mark.parametrize("group", ["1", 1.5, True])
+def test_bad_group(tmp_path, group):
+    document = {
+        "info": {"width": 10, "height": 5},
+        "objects": [{"category": "a", "group": group, "segmentation": [[0, 0], [1, 0], [1, 1]]}],
+    }
+    path = tmp_path / "frame.json"
+    path.write_text(json.dumps(document))
+    with pytest.raises(InputError, match=r"object 0: 'group' is .* not an integer"):
+        read_lerf_labels(path)
+
+
+def test_bad_labels_are_not_written(tmp_path):
+    path = tmp_path / "frame.json"
+    path.write_text("previous")
+    triangle = np.array([[0.0, 0.0], [4.0, 0.0], [0.0, 2.0]])
+    cases = [
+        (FrameLabels("a", 10, 5, (LabelledObject("a", triangle, (0, 0, 4, 3)),)), "bounds"),
+        (FrameLabels("a", 10, 5, (LabelledObject("a", triangle[:2], (0, 0, 4, 0)),)), "≥ 3"),
+        (FrameLabels("a", 0, 5, ()), "not positive"),
+        (
+            FrameLabels("a", 10, 5, (LabelledObject("a", triangle * np.nan, (0, 0, 4, 2)),)),
+            "NaN",
+        ),
+    ]
+    for frame, message in cases:
+        with pytest.raises(InputError, match=message) as info:
+            write_lerf_labels(path, frame)
+        assert str(info.value).startswith(f"labels to write to {path}")
+    assert path.read_text() == "previous"
+    assert [p.name for p in tmp_path.iterdir()] == ["frame.json"]

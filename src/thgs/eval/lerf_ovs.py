@@ -1,11 +1,21 @@
 """LERF-OVS ground-truth labels (LangSplat's release): one JSON file per evaluated frame.
 
-Layout (ISAT-style)::
+Layout (ISAT's, as in LangSplat's ``label/<scene>/frame_XXXXX.json``), keys in this order::
 
-    {"info": {"name": "frame_00053.jpg", "width": 985, "height": 725, ...},
-     "objects": [{"category": "knife", "group": 1,
-                  "segmentation": [[x, y], ...],      # one polygon, pixel coordinates
-                  "bbox": [x1, y1, x2, y2], "area": ..., "iscrowd": 0 | false, ...}, ...]}
+    {"info": {"name": "frame_00053.jpg", "width": 985, "height": 725, "depth": 3, "note": ""},
+     "objects": [{"category": "knife",              # the text query
+                  "group": 1,                       # int: ISAT's instance group
+                  "segmentation": [[x, y], ...],    # one polygon, float pixel coordinates
+                  "area": 4679.0,                   # float: shoelace area of the polygon
+                  "layer": 1.0,                     # float: 1.0, 2.0, ... in file order
+                  "bbox": [x1, y1, x2, y2],         # floats: the polygon's min and max corners
+                  "iscrowd": 0,                     # int (ISAT itself may write false)
+                  "note": ""}, ...]}
+
+The two files in ``shared/data/lerf_ovs_labels`` (teatime ``frame_00002``, waldo_kitchen
+``frame_00053``) are ``json.dumps(document, indent=4)`` with CRLF line ends, every object has all
+eight keys, and ``area`` is the sequentially summed shoelace area of ``segmentation``;
+:func:`write_lerf_labels` reproduces them byte for byte.
 
 Several objects can share a category (three knives); a category's mask is the union of its
 objects' polygons. Coordinates refer to ``info.width × info.height``.
@@ -13,26 +23,36 @@ objects' polygons. Coordinates refer to ``info.width × info.height``.
 
 from __future__ import annotations
 
+import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from thgs._atomic import atomic_output
 from thgs.errors import InputError
 from thgs.eval.polygons import rasterize_polygon
 from thgs.scene._json import get_number, load_json
 
-__all__ = ["FrameLabels", "LabelledObject", "read_lerf_labels"]
+__all__ = ["FrameLabels", "LabelledObject", "read_lerf_labels", "write_lerf_labels"]
 
 
 @dataclass(frozen=True)
 class LabelledObject:
-    """One annotated object: its category, polygon [K, 2] (x, y pixels) and box (x1, y1, x2, y2)."""
+    """One annotated object.
+
+    Attributes:
+        category: the text query it answers.
+        polygon: [K, 2] float64 (x, y) pixel coordinates at the frame's label resolution.
+        bbox: (x1, y1, x2, y2) pixels, the polygon's min and max corners in LangSplat's files.
+        group: ISAT's group id (an instance number within the frame; 0 when the file has none).
+    """
 
     category: str
     polygon: np.ndarray
     bbox: tuple[float, float, float, float]
+    group: int = 0
 
 
 @dataclass(frozen=True)
@@ -88,7 +108,8 @@ def read_lerf_labels(path: str | os.PathLike[str]) -> FrameLabels:
 
     Raises:
         InputError: unreadable JSON, missing ``info`` size or ``objects``, an object without a
-            category or with a polygon of fewer than 3 finite points.
+            category, with a polygon of fewer than 3 finite points or a ``group`` that is not an
+            integer (a missing or null ``group`` reads as 0, as ISAT does).
     """
     path = Path(path)
     document = load_json(path)
@@ -121,5 +142,83 @@ def read_lerf_labels(path: str | os.PathLike[str]) -> FrameLabels:
             bbox = [low[0], low[1], high[0], high[1]]
         if len(bbox) != 4:
             raise InputError(path, f"{where}: 'bbox' must be [x1, y1, x2, y2]")
-        objects.append(LabelledObject(entry["category"], polygon, tuple(float(v) for v in bbox)))  # type: ignore[arg-type]
+        group = entry.get("group")
+        if group is None:
+            group = 0
+        if isinstance(group, bool) or not isinstance(group, int):
+            raise InputError(path, f"{where}: 'group' is {group!r}, not an integer")
+        box = tuple(float(v) for v in bbox)
+        objects.append(LabelledObject(entry["category"], polygon, box, group))  # type: ignore[arg-type]
     return FrameLabels(str(info.get("name", path.stem)), int(width), int(height), tuple(objects))
+
+
+def _shoelace_area(polygon: np.ndarray) -> float:
+    """|½ Σ x_i·y_{i+1} − x_{i+1}·y_i| in pixels², summed in vertex order as ISAT does.
+
+    Sequential summation (``cumsum``, not numpy's pairwise ``sum``) reproduces the ``area`` values
+    of LangSplat's files exactly, not just to rounding.
+    """
+    x, y = polygon[:, 0], polygon[:, 1]
+    terms = x * np.roll(y, -1) - np.roll(x, -1) * y
+    return abs(float(np.cumsum(terms)[-1])) / 2
+
+
+def write_lerf_labels(path: str | os.PathLike[str], labels: FrameLabels) -> None:
+    """Write one frame's labels in the ISAT layout of LangSplat's release, atomically.
+
+    Keys, value types, indentation (4 spaces) and line ends (CRLF) are those of the real files (see
+    the module docstring): ``info`` holds ``name`` (``labels.image_name``), ``width``, ``height``,
+    ``depth`` = 3 and ``note`` = ""; each object holds its ``category``, ``group``,
+    ``segmentation`` (the polygon as floats), ``area`` (its shoelace area, pixels²), ``layer``
+    (1.0, 2.0, ... in order), ``bbox`` (the polygon's [min x, min y, max x, max y]),
+    ``iscrowd`` = 0 and ``note`` = "". Non-ASCII categories are written as UTF-8, as ISAT does.
+    Reading a file of that release and writing it back reproduces it byte for byte.
+
+    Raises:
+        InputError: a size that is not positive, a category that is not a string, a polygon that
+            is not ≥ 3 finite [x, y] points, or an object whose ``bbox`` is not its polygon's
+            bounds (nothing is written then).
+    """
+    source = f"labels to write to {os.fspath(path)}"
+    if labels.width <= 0 or labels.height <= 0:
+        raise InputError(source, f"size {labels.width}×{labels.height} is not positive")
+    objects = []
+    for index, obj in enumerate(labels.objects):
+        if not isinstance(obj.category, str):
+            raise InputError(source, f"object {index}: category {obj.category!r} is not a string")
+        polygon = np.asarray(obj.polygon, dtype=np.float64)
+        if polygon.ndim != 2 or polygon.shape[1] != 2 or len(polygon) < 3:
+            raise InputError(source, f"object {index}: the polygon must be ≥ 3 [x, y] points")
+        if not np.isfinite(polygon).all():
+            raise InputError(source, f"object {index}: the polygon has NaN or infinite values")
+        low, high = polygon.min(axis=0), polygon.max(axis=0)
+        bbox = [float(low[0]), float(low[1]), float(high[0]), float(high[1])]
+        if [float(v) for v in obj.bbox] != bbox:
+            raise InputError(
+                source, f"object {index}: bbox {list(obj.bbox)} is not the polygon's bounds {bbox}"
+            )
+        objects.append(
+            {
+                "category": obj.category,
+                "group": int(obj.group),
+                "segmentation": polygon.tolist(),
+                "area": _shoelace_area(polygon),
+                "layer": float(index + 1),
+                "bbox": bbox,
+                "iscrowd": 0,
+                "note": "",
+            }
+        )
+    document = {
+        "info": {
+            "name": labels.image_name,
+            "width": int(labels.width),
+            "height": int(labels.height),
+            "depth": 3,
+            "note": "",
+        },
+        "objects": objects,
+    }
+    text = json.dumps(document, indent=4, ensure_ascii=False).replace("\n", "\r\n")
+    with atomic_output(path, "wb") as handle:
+        handle.write(text.encode("utf-8"))

@@ -8,10 +8,15 @@ Per view ``<stem>``, in a ``language_features/`` folder::
 Mask ids are global row indices into ``_f.npy``, offset level after level: the ``default`` masks
 take rows ``0 … n_default−1``, the ``s`` masks the next ``n_s`` rows, and so on. This is what
 LangSplat writes and what THGS, OpenGaussian, Occam's LGS and Dr. Splat read.
+
+thgs adds one file LangSplat lacks, ``embedding.json`` ({"space": ..., "dim": D}), naming the
+embedding space of the features (e.g. ``laion/CLIP-ViT-B-16-laion2B-s34B-b88K``) so that nothing
+compares features and queries from different models. Folders without it are taken as they are.
 """
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 from dataclasses import dataclass
@@ -22,13 +27,17 @@ import numpy as np
 from thgs._atomic import atomic_output
 from thgs.errors import InputError
 from thgs.scene import Cameras
+from thgs.scene._json import load_json
 
 __all__ = [
+    "EMBEDDING_FILE",
     "LEVELS",
     "ViewGuidance",
     "load_guidance",
+    "read_embedding_space",
     "read_view_guidance",
     "resample_segments",
+    "write_embedding_space",
     "write_view_guidance",
 ]
 
@@ -157,6 +166,35 @@ def write_view_guidance(folder: str | os.PathLike[str], guidance: ViewGuidance) 
         np.save(handle, guidance.features.astype(np.float32))
     with atomic_output(segments_path) as handle:
         np.save(handle, guidance.segments.astype(np.float32))
+
+
+EMBEDDING_FILE = "embedding.json"
+"""The file in a ``language_features`` folder that names the features' embedding space."""
+
+
+def write_embedding_space(folder: str | os.PathLike[str], space: str, dim: int) -> None:
+    """Record that the features in ``folder`` are ``dim``-D vectors of embedding space ``space``."""
+    with atomic_output(Path(folder) / EMBEDDING_FILE, "w") as handle:
+        json.dump({"space": space, "dim": int(dim)}, handle, indent=2)
+        handle.write("\n")
+
+
+def read_embedding_space(folder: str | os.PathLike[str]) -> tuple[str, int] | None:
+    """The (space, dim) recorded in ``folder``, or None if it records none.
+
+    Raises:
+        InputError: the file exists but is malformed.
+    """
+    path = Path(folder) / EMBEDDING_FILE
+    if not path.is_file():
+        return None
+    document = load_json(path)
+    if not isinstance(document, dict) or not isinstance(document.get("space"), str):
+        raise InputError(path, 'expected {"space": <name>, "dim": <int>}')
+    dim = document.get("dim")
+    if not isinstance(dim, int) or dim < 1:
+        raise InputError(path, f"'dim' must be a positive integer, got {dim!r}")
+    return document["space"], dim
 
 
 def resample_segments(segments: np.ndarray, height: int, width: int) -> np.ndarray:

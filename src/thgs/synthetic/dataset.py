@@ -1,0 +1,304 @@
+"""Write a synthetic scene as a complete dataset in the real benchmarks' file formats.
+
+Layout of ``OUT/`` (one folder is both the trained-model folder and the training-data folder)::
+
+    point_cloud/iteration_30000/point_cloud.ply   the Gaussians (INRIA layout)
+    cameras.json                                  3DGS cameras
+    sparse/0/{cameras,images,points3D}.bin         COLMAP model (PINHOLE, no points)
+    transforms.json                                nerfstudio cameras
+    images/frame_00001.jpg …                      rendered RGB
+    language_features/frame_00001_{s,f}.npy …     oracle guidance, LangSplat layout
+    language_features/embedding.json              the features' embedding space
+    label/frame_000xx.json                        LERF-OVS-style labels of the evaluation frames
+    segmentations/classes.txt, <NN>/<class>.png   3DOVS-style masks of the evaluation frames
+                                                  (NN = view index, as 3D-OVS names them)
+    scannet/synthetic_vh_clean_2.labels.ply        ScanNet-style per-Gaussian class labels
+    ground_truth.safetensors                       per-Gaussian sub-part / part / object ids + names
+    synthetic.json                                 how it was made (configs, seed, counts)
+
+Everything is written into a hidden sibling folder first and renamed to ``OUT`` at the end, so an
+interrupted run never leaves a half-written dataset. Same scene and configs → the same bytes.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import shutil
+import tempfile
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+from PIL import Image
+
+from thgs.errors import InputError
+from thgs.eval.ground_truth import HIERARCHY_LEVELS, write_hierarchy
+from thgs.eval.lerf_ovs import FrameLabels, LabelledObject, write_lerf_labels
+from thgs.eval.polygons import mask_to_polygons
+from thgs.eval.scannet import PointLabels, write_scannet_labels
+from thgs.eval.three_dovs import SegmentationSet, write_3dovs_segmentations
+from thgs.guidance import write_embedding_space, write_view_guidance
+from thgs.render import render
+from thgs.scene import write_cameras_json, write_colmap, write_ply, write_transforms_json
+from thgs.synthetic.oracle import OracleConfig, ground_truth_maps, oracle_guidance
+from thgs.synthetic.scene import SyntheticScene
+from thgs.text import TextEncoder
+
+__all__ = [
+    "SCANNET_LABELS",
+    "DatasetConfig",
+    "DatasetSummary",
+    "evaluation_views",
+    "label_categories",
+    "render_view",
+    "write_dataset",
+]
+
+logger = logging.getLogger(__name__)
+
+SCANNET_LABELS = "scannet/synthetic_vh_clean_2.labels.ply"
+"""Where the ScanNet-style labels go inside a dataset."""
+
+
+@dataclass(frozen=True)
+class DatasetConfig:
+    """How the dataset is written.
+
+    Attributes:
+        evaluation_views: how many views (evenly spread) get LERF-OVS and 3DOVS labels.
+        min_label_pixels: a node must cover at least this many pixels of a frame to be labelled
+            in it.
+        jpeg_quality: quality of the RGB images.
+        background: RGB in [0, 1] behind the scene.
+    """
+
+    evaluation_views: int = 4
+    min_label_pixels: int = 20
+    jpeg_quality: int = 95
+    background: tuple[float, float, float] = (0.80, 0.82, 0.86)
+
+
+@dataclass(frozen=True)
+class DatasetSummary:
+    """What was written: the folder, counts, and the size on disk in bytes."""
+
+    path: Path
+    gaussians: int
+    views: int
+    masks: int
+    evaluation_views: tuple[str, ...]
+    categories: tuple[str, ...]
+    bytes: int
+
+
+def render_view(
+    scene: SyntheticScene, index: int, background: tuple[float, float, float]
+) -> tuple[np.ndarray, np.ndarray]:
+    """View ``index`` as ([H, W, 3] uint8 RGB over ``background``, [H, W] int64 max-weight ids)."""
+    gaussians = scene.gaussians
+    colors = gaussians.dc_colors().to(torch.float64)
+    out = render(gaussians, scene.cameras.select([index]), colors)
+    image = out.image + (1.0 - out.alpha)[..., None] * torch.tensor(background, dtype=torch.float64)
+    rgb = np.floor(image.clamp(0.0, 1.0).numpy() * 255.0 + 0.5).astype(np.uint8)
+    return rgb, out.max_id.numpy()
+
+
+def evaluation_views(count: int, evaluate: int) -> list[int]:
+    """``evaluate`` view indices spread evenly over ``count`` views, first and last included."""
+    if evaluate <= 0:
+        return []
+    return sorted({int(i) for i in np.round(np.linspace(0, count - 1, min(evaluate, count)))})
+
+
+def label_categories(
+    maps: np.ndarray, scene: SyntheticScene, min_pixels: int
+) -> dict[str, tuple[int, list[int]]]:
+    """The LERF-OVS-style prompts of one frame: category → (hierarchy level, its nodes).
+
+    Categories are the names of the objects (except the floor), of the parts named differently
+    from their object, and of the sub-parts named differently from their part, among the nodes
+    covering at least ``min_pixels`` pixels. A category's mask is the union of its nodes' pixels.
+
+    Args:
+        maps: [3, H, W] the frame's ground-truth node ids (sub-part, part, object).
+    """
+    hierarchy = scene.hierarchy
+    parents = (hierarchy.subpart_parent, hierarchy.part_parent)
+    categories: dict[str, tuple[int, list[int]]] = {}
+    for level in (2, 1, 0):
+        names = hierarchy.names[level]
+        counts = np.bincount(maps[level][maps[level] >= 0], minlength=len(names))
+        for node in np.flatnonzero(counts >= min_pixels):
+            name = names[node]
+            if level == 2 and name == "floor":
+                continue
+            if level < 2 and name == hierarchy.names[level + 1][parents[level][node]]:
+                continue
+            categories.setdefault(name, (level, []))[1].append(int(node))
+    return categories
+
+
+def _frame_labels(
+    stem: str, maps: np.ndarray, scene: SyntheticScene, min_pixels: int
+) -> FrameLabels:
+    """LERF-OVS labels of one frame: one object per connected component of every node; the
+    nodes of one category are numbered as its groups."""
+    height, width = maps.shape[1:]
+    objects = []
+    for category, (level, nodes) in label_categories(maps, scene, min_pixels).items():
+        for group, node in enumerate(nodes, start=1):
+            for polygon in mask_to_polygons(maps[level] == node):
+                x, y = polygon[:, 0], polygon[:, 1]
+                bbox = (float(x.min()), float(y.min()), float(x.max()), float(y.max()))
+                objects.append(LabelledObject(category, polygon, bbox, group))
+    return FrameLabels(f"{stem}.jpg", int(width), int(height), tuple(objects))
+
+
+def _object_classes(scene: SyntheticScene) -> tuple[str, ...]:
+    return tuple(sorted(set(scene.hierarchy.names[2])))
+
+
+def _scannet_labels(scene: SyntheticScene) -> PointLabels:
+    classes = _object_classes(scene)
+    class_of_object = np.array(
+        [classes.index(name) + 1 for name in scene.hierarchy.names[2]] + [0], dtype=np.int64
+    )
+    return PointLabels(
+        points=scene.gaussians.means.numpy().astype(np.float32),
+        labels=class_of_object[scene.hierarchy.labels[:, 2]],
+        class_names={i + 1: name for i, name in enumerate(classes)},
+    )
+
+
+def _folder_bytes(folder: Path) -> int:
+    return sum(path.stat().st_size for path in folder.rglob("*") if path.is_file())
+
+
+def write_dataset(
+    out: str | os.PathLike[str],
+    scene: SyntheticScene,
+    encoder: TextEncoder,
+    *,
+    oracle: OracleConfig = OracleConfig(),
+    config: DatasetConfig = DatasetConfig(),
+    overwrite: bool = False,
+    progress: Callable[[int, int], None] | None = None,
+) -> DatasetSummary:
+    """Render every view, make its oracle guidance and labels, and write the dataset to ``out``.
+
+    Args:
+        out: the dataset folder to create.
+        scene: from :func:`thgs.synthetic.generate_scene`.
+        encoder: the text model of the oracle features (its space is recorded).
+        oracle: fault severity, feature noise and seed of the guidance.
+        config: evaluation frames, image settings.
+        overwrite: replace an existing ``out``; otherwise an existing non-empty ``out`` is an error.
+        progress: called with (views done, views) after each view.
+
+    Raises:
+        InputError: ``out`` exists (without ``overwrite``) or is a file.
+    """
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise InputError(out, "exists and is not a folder")
+    if out.is_dir() and any(out.iterdir()) and not overwrite:
+        raise InputError(out, "already exists and is not empty (pass overwrite to replace it)")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
+    try:
+        summary = _write(staging, scene, encoder, oracle, config, progress)
+        if out.exists():
+            shutil.rmtree(out)
+        os.replace(staging, out)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    summary = replace(summary, path=out)
+    logger.info("wrote %s (%.1f MB)", out, summary.bytes / 1e6)
+    return summary
+
+
+def _write(
+    root: Path,
+    scene: SyntheticScene,
+    encoder: TextEncoder,
+    oracle: OracleConfig,
+    config: DatasetConfig,
+    progress: Callable[[int, int], None] | None,
+) -> DatasetSummary:
+    cameras = scene.cameras
+    stems = cameras.stems
+    write_ply(root / "point_cloud" / "iteration_30000" / "point_cloud.ply", scene.gaussians)
+    write_cameras_json(root / "cameras.json", cameras)
+    write_colmap(root / "sparse" / "0", replace(cameras, names=tuple(f"{s}.jpg" for s in stems)))
+    write_transforms_json(
+        root / "transforms.json", replace(cameras, names=tuple(f"images/{s}.jpg" for s in stems))
+    )
+    features_dir = root / "language_features"
+    features_dir.mkdir()
+    write_embedding_space(features_dir, encoder.space, encoder.dim)
+    (root / "images").mkdir()
+
+    evaluated = evaluation_views(len(cameras), config.evaluation_views)
+    classes = _object_classes(scene)
+    segmentations: dict[str, dict[str, np.ndarray]] = {}
+    categories: dict[str, None] = {}
+    masks = 0
+    for index, stem in enumerate(stems):
+        rgb, max_id = render_view(scene, index, config.background)
+        Image.fromarray(rgb).save(
+            root / "images" / f"{stem}.jpg", quality=config.jpeg_quality, subsampling=0
+        )
+        guidance = oracle_guidance(stem, max_id, scene.hierarchy, encoder, oracle, index)
+        write_view_guidance(features_dir, guidance)
+        masks += guidance.features.shape[0]
+        if index in evaluated:
+            maps = ground_truth_maps(max_id, scene.hierarchy)
+            labels = _frame_labels(stem, maps, scene, config.min_label_pixels)
+            write_lerf_labels(root / "label" / f"{stem}.json", labels)
+            categories.update(dict.fromkeys(labels.categories))
+            objects = maps[2]
+            segmentations[f"{index:02d}"] = {
+                name: np.isin(
+                    objects,
+                    [i for i, node in enumerate(scene.hierarchy.names[2]) if node == name],
+                )
+                for name in classes
+            }
+        if progress is not None:
+            progress(index + 1, len(stems))
+    write_3dovs_segmentations(
+        root / "segmentations", SegmentationSet(classes=classes, views=segmentations)
+    )
+    write_scannet_labels(root / SCANNET_LABELS, _scannet_labels(scene))
+    write_hierarchy(root / "ground_truth.safetensors", scene.hierarchy)
+    record = {
+        "format": "thgs.synthetic",
+        "version": "1",
+        "scene": asdict(scene.config),
+        "oracle": asdict(oracle),
+        "dataset": asdict(config),
+        "embedding_space": encoder.space,
+        "embedding_dim": encoder.dim,
+        "hierarchy_levels": list(HIERARCHY_LEVELS),
+        "objects": list(scene.hierarchy.names[2]),
+        "evaluation_views": [stems[i] for i in evaluated],
+        "gaussians": len(scene.gaussians),
+        "masks": masks,
+    }
+    with open(root / "synthetic.json", "w", encoding="utf-8") as handle:
+        json.dump(record, handle, indent=2)
+        handle.write("\n")
+    return DatasetSummary(
+        path=root,
+        gaussians=len(scene.gaussians),
+        views=len(stems),
+        masks=masks,
+        evaluation_views=tuple(stems[i] for i in evaluated),
+        categories=tuple(categories),
+        bytes=_folder_bytes(root),
+    )

@@ -1,0 +1,410 @@
+"""Oracle guidance: SAM-like multi-level masks and CLIP-like features from the ground truth.
+
+Per view, the ground-truth label maps at the three levels (sub-part, part, object) come from the
+max-weight Gaussian of every pixel. Their 4-connected components are the clean masks of SAM's
+levels s, m and l. Faults then make them look like SAM's output, each with a rate scaled by one
+``severity`` knob (0 = clean), in this order:
+
+1. wrong level — a mask is replaced by the component of a neighbouring level that overlaps it most
+   (a part-sized mask among the sub-parts, …), with that level's name;
+2. merge — two touching masks become one (named after the larger);
+3. split — a mask is cut in two by a random line through its pixels' median (both keep the name);
+4. drop — a mask disappears (its pixels get no mask);
+5. boundary jitter — a mask grows (taking pixels from whatever was there) or shrinks (leaving
+   pixels without a mask) by 1 … ``max_jitter`` pixels;
+6. spurious — small elliptical masks appear, named after the ground truth under their centre.
+
+The ``default`` level pools the final s, m and l masks the way LangSplat stores SAM's automatic
+masks: identical masks once, painted largest first so that the smallest mask containing a pixel
+wins. Each mask's feature is the text embedding of its name plus Gaussian noise, renormalized.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import ndimage
+
+from thgs.eval.ground_truth import Hierarchy
+from thgs.guidance import ViewGuidance
+from thgs.text import TextEncoder
+
+__all__ = [
+    "FaultRates",
+    "LevelMasks",
+    "OracleConfig",
+    "apply_faults",
+    "clean_masks",
+    "ground_truth_maps",
+    "mask_features",
+    "oracle_guidance",
+    "pool_default",
+]
+
+
+@dataclass(frozen=True)
+class FaultRates:
+    """Fault rates at severity 1 (scaled linearly by :attr:`OracleConfig.severity`).
+
+    Attributes:
+        wrong_level: probability per mask of being replaced by a neighbouring level's mask.
+        merge: probability per pair of touching masks of being merged.
+        split: probability per mask (of at least ``min_split_pixels``) of being split in two.
+        drop: probability per mask of disappearing.
+        jitter: probability per mask of growing or shrinking at its boundary.
+        spurious: expected number of spurious small masks per view and level.
+    """
+
+    wrong_level: float = 0.06
+    merge: float = 0.1
+    split: float = 0.1
+    drop: float = 0.08
+    jitter: float = 0.4
+    spurious: float = 2.0
+
+
+@dataclass(frozen=True)
+class OracleConfig:
+    """Settings of the oracle guidance.
+
+    Attributes:
+        severity: multiplies every fault rate; 0 gives the clean ground-truth components.
+        rates: the fault rates at severity 1.
+        max_jitter: largest boundary shift in pixels.
+        spurious_radius: range of the spurious ellipses' semi-axes in pixels.
+        min_split_pixels: masks smaller than this are never split.
+        min_pixels: masks smaller than this are removed, clean or faulty (SAM's minimum region;
+            1 keeps every ground-truth component).
+        feature_noise: standard deviation of the noise added to a unit text embedding (as a
+            vector norm: ``f = normalize(e + feature_noise · g / √D)``, g standard normal).
+        seed: base of every random draw (view i uses ``[seed, i]``).
+    """
+
+    severity: float = 0.5
+    rates: FaultRates = field(default_factory=FaultRates)
+    max_jitter: int = 3
+    spurious_radius: tuple[int, int] = (2, 8)
+    min_split_pixels: int = 64
+    min_pixels: int = 10
+    feature_noise: float = 0.5
+    seed: int = 0
+
+    def rate(self, name: str) -> float:
+        return getattr(self.rates, name) * self.severity
+
+
+@dataclass(frozen=True, eq=False)
+class LevelMasks:
+    """Non-overlapping masks of one level in one view.
+
+    Attributes:
+        ids: [H, W] int32 mask index per pixel, −1 = no mask.
+        names: the text name of every mask (``len(names)`` masks, each with at least one pixel
+            after :meth:`compact`).
+    """
+
+    ids: np.ndarray
+    names: tuple[str, ...]
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+    def without_small(self, min_pixels: int) -> LevelMasks:
+        """Masks with fewer than ``min_pixels`` pixels removed (their pixels get no mask)."""
+        areas = np.bincount(self.ids[self.ids >= 0], minlength=len(self.names))
+        small = np.concatenate([[False], areas < min_pixels])
+        return LevelMasks(np.where(small[self.ids + 1], -1, self.ids).astype(np.int32), self.names)
+
+    def compact(self) -> LevelMasks:
+        """Drop masks with no pixels left and renumber the rest in order."""
+        present = np.zeros(len(self.names) + 1, dtype=bool)
+        present[np.unique(self.ids) + 1] = True
+        keep = present[1:]
+        new_index = np.full(len(self.names) + 1, -1, dtype=np.int32)
+        new_index[1:][keep] = np.arange(int(keep.sum()), dtype=np.int32)
+        names = tuple(name for name, kept in zip(self.names, keep) if kept)
+        return LevelMasks(new_index[self.ids + 1], names)
+
+
+def ground_truth_maps(max_id: np.ndarray, hierarchy: Hierarchy) -> np.ndarray:
+    """[3, H, W] int32 ground-truth node ids (sub-part, part, object) per pixel.
+
+    Args:
+        max_id: [H, W] index of each pixel's max-weight Gaussian, −1 where none.
+        hierarchy: the per-Gaussian ground truth.
+    """
+    padded = np.concatenate([hierarchy.labels, np.full((1, 3), -1, dtype=np.int32)])
+    return np.moveaxis(padded[max_id], -1, 0).astype(np.int32)
+
+
+def _components(node_map: np.ndarray, names: tuple[str, ...]) -> LevelMasks:
+    ids = np.full(node_map.shape, -1, dtype=np.int32)
+    mask_names: list[str] = []
+    for node, box in enumerate(ndimage.find_objects(node_map + 1)):
+        if box is None:
+            continue
+        labelled, count = ndimage.label(node_map[box] == node)
+        window = ids[box]
+        inside = labelled > 0
+        window[inside] = labelled[inside] - 1 + len(mask_names)
+        mask_names.extend([names[node]] * count)
+    return LevelMasks(ids, tuple(mask_names))
+
+
+def clean_masks(maps: np.ndarray, hierarchy: Hierarchy, min_pixels: int = 1) -> list[LevelMasks]:
+    """The 4-connected components of each level's ground-truth map (levels s, m, l), those
+    under ``min_pixels`` pixels left out."""
+    return [
+        _components(maps[level], hierarchy.names[level]).without_small(min_pixels).compact()
+        for level in range(3)
+    ]
+
+
+def _boxes(ids: np.ndarray, count: int) -> list[tuple[slice, slice] | None]:
+    boxes = ndimage.find_objects(ids + 1, max_label=count)
+    return list(boxes)
+
+
+def _grow(box: tuple[slice, slice], radius: int, shape: tuple[int, int]) -> tuple[slice, slice]:
+    return tuple(  # type: ignore[return-value]
+        slice(max(0, s.start - radius), min(size, s.stop + radius)) for s, size in zip(box, shape)
+    )
+
+
+def _disk(radius: int) -> np.ndarray:
+    y, x = np.mgrid[-radius : radius + 1, -radius : radius + 1]
+    return x * x + y * y <= radius * radius
+
+
+def _wrong_level(
+    masks: LevelMasks, level: int, clean: list[LevelMasks], p: float, rng: np.random.Generator
+) -> LevelMasks:
+    ids, names = masks.ids.copy(), list(masks.names)
+    for index in range(len(masks)):
+        if rng.uniform() >= p:
+            continue
+        other_levels = [k for k in (level - 1, level + 1) if 0 <= k < 3]
+        other = clean[other_levels[int(rng.integers(len(other_levels)))]]
+        own = masks.ids == index
+        overlap = other.ids[own]
+        overlap = overlap[overlap >= 0]
+        if overlap.size == 0:
+            continue
+        chosen = int(np.bincount(overlap).argmax())
+        ids[own & (ids == index)] = -1
+        ids[other.ids == chosen] = index
+        names[index] = other.names[chosen]
+    return LevelMasks(ids, tuple(names))
+
+
+def _merge(masks: LevelMasks, p: float, rng: np.random.Generator) -> LevelMasks:
+    ids = masks.ids
+    pairs = [
+        np.stack([ids[:, :-1].ravel(), ids[:, 1:].ravel()], axis=1),
+        np.stack([ids[:-1, :].ravel(), ids[1:, :].ravel()], axis=1),
+    ]
+    pairs = np.concatenate(pairs)
+    pairs = pairs[(pairs[:, 0] >= 0) & (pairs[:, 1] >= 0) & (pairs[:, 0] != pairs[:, 1])]
+    pairs = np.unique(np.sort(pairs, axis=1), axis=0)
+    areas = np.bincount(ids[ids >= 0], minlength=len(masks))
+    target = np.arange(len(masks))
+    names = list(masks.names)
+    used = np.zeros(len(masks), dtype=bool)
+    for a, b in pairs:
+        if rng.uniform() >= p or used[a] or used[b]:
+            continue
+        used[a] = used[b] = True
+        keep, gone = (a, b) if areas[a] >= areas[b] else (b, a)
+        target[gone] = keep
+    merged = np.where(ids >= 0, target[np.maximum(ids, 0)], -1).astype(np.int32)
+    return LevelMasks(merged, tuple(names))
+
+
+def _split(masks: LevelMasks, p: float, min_pixels: int, rng: np.random.Generator) -> LevelMasks:
+    ids, names = masks.ids.copy(), list(masks.names)
+    for index, box in enumerate(_boxes(masks.ids, len(masks))):
+        if box is None or rng.uniform() >= p:
+            continue
+        rows, cols = np.nonzero(masks.ids[box] == index)
+        if rows.size < min_pixels:
+            continue
+        angle = rng.uniform(0.0, math.pi)
+        along = cols * math.cos(angle) + rows * math.sin(angle)
+        second = along > np.median(along)
+        if not second.any() or second.all():
+            continue
+        window = ids[box]
+        window[rows[second], cols[second]] = len(names)
+        names.append(names[index])
+    return LevelMasks(ids, tuple(names))
+
+
+def _drop(masks: LevelMasks, p: float, rng: np.random.Generator) -> LevelMasks:
+    dropped = np.concatenate([[False], rng.uniform(size=len(masks)) < p])
+    ids = np.where(dropped[masks.ids + 1], -1, masks.ids).astype(np.int32)
+    return LevelMasks(ids, masks.names)
+
+
+def _jitter(masks: LevelMasks, p: float, max_shift: int, rng: np.random.Generator) -> LevelMasks:
+    ids = masks.ids.copy()
+    for index, box in enumerate(_boxes(masks.ids, len(masks))):
+        if box is None or rng.uniform() >= p:
+            continue
+        radius = int(rng.integers(1, max_shift + 1))
+        grow = rng.uniform() < 0.5
+        window_box = _grow(box, radius + 1, ids.shape)
+        window = ids[window_box]
+        own = masks.ids[window_box] == index
+        if grow:
+            window[ndimage.binary_dilation(own, _disk(radius))] = index
+        else:
+            eroded = ndimage.binary_erosion(own, _disk(radius), border_value=1)
+            window[own & ~eroded & (window == index)] = -1
+    return LevelMasks(ids, masks.names)
+
+
+def _spurious(
+    masks: LevelMasks,
+    names_under: np.ndarray,
+    expected: float,
+    radius: tuple[int, int],
+    rng: np.random.Generator,
+) -> LevelMasks:
+    ids, names = masks.ids.copy(), list(masks.names)
+    height, width = ids.shape
+    yy, xx = np.mgrid[0:height, 0:width]
+    for _ in range(int(rng.poisson(expected))):
+        cy, cx = int(rng.integers(height)), int(rng.integers(width))
+        a, b = rng.uniform(radius[0], radius[1], size=2)
+        angle = rng.uniform(0.0, math.pi)
+        name = names_under[cy, cx]
+        if name is None:
+            continue
+        dx, dy = xx - cx, yy - cy
+        u = dx * math.cos(angle) + dy * math.sin(angle)
+        v = -dx * math.sin(angle) + dy * math.cos(angle)
+        ids[(u / a) ** 2 + (v / b) ** 2 <= 1.0] = len(names)
+        names.append(str(name))
+    return LevelMasks(ids, tuple(names))
+
+
+def apply_faults(
+    clean: list[LevelMasks],
+    maps: np.ndarray,
+    hierarchy: Hierarchy,
+    config: OracleConfig,
+    rng: np.random.Generator,
+) -> list[LevelMasks]:
+    """SAM-like faults on the clean masks of the three levels (see the module docstring).
+
+    Args:
+        clean: :func:`clean_masks` of the view.
+        maps: [3, H, W] the view's :func:`ground_truth_maps` (names for spurious masks).
+        hierarchy: the ground truth (node names).
+        config: the rates, scaled by ``config.severity``.
+        rng: the view's random generator.
+
+    Returns:
+        the faulty masks of levels s, m, l, compacted.
+    """
+    faulty = []
+    for level, masks in enumerate(clean):
+        masks = _wrong_level(masks, level, clean, config.rate("wrong_level"), rng)
+        masks = _merge(masks, config.rate("merge"), rng)
+        masks = _split(masks, config.rate("split"), config.min_split_pixels, rng)
+        masks = _drop(masks, config.rate("drop"), rng)
+        masks = _jitter(masks, config.rate("jitter"), config.max_jitter, rng)
+        names_under = np.array([*hierarchy.names[level], None], dtype=object)[maps[level]]
+        masks = _spurious(masks, names_under, config.rate("spurious"), config.spurious_radius, rng)
+        faulty.append(masks.without_small(config.min_pixels).compact())
+    return faulty
+
+
+def pool_default(levels: list[LevelMasks]) -> tuple[LevelMasks, list[tuple[int, int]]]:
+    """The ``default`` level: all masks of s, m, l, identical ones once, largest painted first.
+
+    Returns:
+        the pooled masks and, for each, the (level, index) it came from (its feature's source).
+    """
+    height, width = levels[0].ids.shape
+    candidates: list[tuple[int, int, int, np.ndarray]] = []
+    seen: set[bytes] = set()
+    for level, masks in enumerate(levels):
+        flat = masks.ids.ravel()
+        order = np.argsort(flat, kind="stable")
+        starts = np.searchsorted(flat[order], np.arange(len(masks) + 1))
+        for index in range(len(masks)):
+            pixels = order[starts[index] : starts[index + 1]]
+            key = pixels.tobytes()
+            if key in seen:
+                continue
+            seen.add(key)
+            candidates.append((-pixels.size, level, index, pixels))
+    candidates.sort(key=lambda item: item[:3])
+    ids = np.full(height * width, -1, dtype=np.int32)
+    for slot, (_, _, _, pixels) in enumerate(candidates):
+        ids[pixels] = slot
+    names = tuple(levels[level].names[index] for _, level, index, _ in candidates)
+    sources = [(level, index) for _, level, index, _ in candidates]
+    pooled = LevelMasks(ids.reshape(height, width), names)
+    present = np.zeros(len(candidates), dtype=bool)
+    present[np.unique(pooled.ids[pooled.ids >= 0])] = True
+    compacted = pooled.compact()
+    return compacted, [source for source, kept in zip(sources, present) if kept]
+
+
+def mask_features(
+    names: tuple[str, ...], encoder: TextEncoder, noise: float, rng: np.random.Generator
+) -> np.ndarray:
+    """[len(names), D] float32 unit rows: ``normalize(embed(name) + noise · g / √D)``."""
+    embeddings = encoder.encode(list(names)).astype(np.float64)
+    if len(names) == 0:
+        return embeddings.astype(np.float32)
+    dim = embeddings.shape[1]
+    noisy = embeddings + noise * rng.normal(size=embeddings.shape) / math.sqrt(dim)
+    return (noisy / np.linalg.norm(noisy, axis=1, keepdims=True)).astype(np.float32)
+
+
+def oracle_guidance(
+    stem: str,
+    max_id: np.ndarray,
+    hierarchy: Hierarchy,
+    encoder: TextEncoder,
+    config: OracleConfig,
+    view_index: int,
+) -> ViewGuidance:
+    """One view's guidance in LangSplat's layout (levels default, s, m, l).
+
+    Args:
+        stem: the view's image stem.
+        max_id: [H, W] index of each pixel's max-weight Gaussian (−1 where none), from
+            :func:`thgs.render.render`.
+        hierarchy: the per-Gaussian ground truth.
+        encoder: the text model whose space the features live in.
+        config: fault severity and rates, feature noise, seed.
+        view_index: the view's position (seeds its random draws with ``[config.seed, i]``).
+    """
+    rng = np.random.default_rng([config.seed, view_index])
+    maps = ground_truth_maps(max_id, hierarchy)
+    clean = clean_masks(maps, hierarchy, config.min_pixels)
+    levels = apply_faults(clean, maps, hierarchy, config, rng)
+    level_features = [
+        mask_features(masks.names, encoder, config.feature_noise, rng) for masks in levels
+    ]
+    pooled, sources = pool_default(levels)
+    pooled_features = (
+        np.stack([level_features[level][index] for level, index in sources])
+        if sources
+        else np.zeros((0, encoder.dim), dtype=np.float32)
+    )
+    segments = []
+    offset = 0
+    for masks in (pooled, *levels):
+        segments.append(np.where(masks.ids >= 0, masks.ids + offset, -1))
+        offset += len(masks)
+    features = np.concatenate([pooled_features, *level_features])
+    return ViewGuidance(stem, np.stack(segments).astype(np.int32), features).check(
+        source=f"oracle guidance for {stem}"
+    )

