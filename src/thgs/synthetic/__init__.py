@@ -1,7 +1,14 @@
 """Synthetic benchmark scenes with exact hierarchy ground truth and SAM-like oracle guidance.
 
->>> scene = generate_scene(preset("synth-small", seed=1))
->>> write_dataset("synth-small", scene, MiniLMEncoder())   # doctest: +SKIP
+Usage::
+
+    from thgs.synthetic import generate_scene, preset, write_dataset
+    from thgs.text import MiniLMEncoder
+
+    scene = generate_scene(preset("synth-small", seed=1))
+    write_dataset("out/synth-small", scene, MiniLMEncoder())
+
+See docs/synthetic.md.
 """
 
 from thgs.synthetic.dataset import (
