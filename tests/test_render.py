@@ -11,7 +11,7 @@ import torch
 
 from render_reference import brute_force
 from thgs import Cameras, Gaussians, InputError
-from thgs.render import RasterConfig, project, render, splat_back
+from thgs.render import RasterConfig, project, render, splat_back, splat_labels
 from thgs.scene.gaussians import quaternions_to_matrices
 
 
@@ -297,3 +297,33 @@ def test_bad_input():
         render(broken, cam, torch.zeros(5, 1))
     with pytest.raises(InputError, match="RasterConfig"):
         RasterConfig(near=-1.0)
+
+
+@pytest.mark.parametrize("kind", ["2dgs", "3dgs"])
+@pytest.mark.parametrize("seed", [0, 1])
+def test_splat_labels_matches_brute_force(kind, seed):
+    gaussians, cam = tiny_scene(kind, seed=seed), camera()
+    rng = np.random.default_rng(seed)
+    # two levels of blocky labels with unlabelled pixels
+    coarse = rng.integers(-1, 3, size=(6, 8)).repeat(6, axis=0).repeat(6, axis=1)
+    fine = rng.integers(-1, 7, size=(12, 16)).repeat(3, axis=0).repeat(3, axis=1)
+    maps = np.stack([coarse, fine])
+    result = splat_labels(gaussians, cam, maps)
+    weights = brute_force(gaussians, cam, RasterConfig())["weights"].numpy()  # [H, W, N]
+    expected = {}
+    for level in range(2):
+        for label in range(int(maps[level].max()) + 1):
+            sums = weights[maps[level] == label].sum(0)
+            for g in np.flatnonzero(sums > 0):
+                expected[(int(g), level, label)] = sums[g]
+    got = {
+        (int(g), int(level), int(label)): w
+        for g, level, label, w in zip(result.gaussians, result.levels, result.labels, result.weights)
+    }
+    assert got.keys() == expected.keys()
+    for key, value in expected.items():
+        assert got[key] == pytest.approx(value, rel=1e-9, abs=1e-12)
+    np.testing.assert_allclose(result.weight_sums, weights.sum((0, 1)), rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(result.max_weights, weights.max((0, 1)), rtol=1e-9, atol=1e-12)
+    keys = np.stack([result.gaussians, result.levels, result.labels], axis=1)
+    assert (np.diff(keys[:, 0] * 100 + keys[:, 1] * 10 + keys[:, 2]) > 0).all()  # sorted

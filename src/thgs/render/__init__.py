@@ -3,11 +3,19 @@
 See docs/rendering.md for the formulas and conventions.
 """
 
-from thgs.render.api import RenderOutput, SplatBackOutput, render, splat_back
+from thgs.render.api import (
+    LabelWeights,
+    RenderOutput,
+    SplatBackOutput,
+    render,
+    splat_back,
+    splat_labels,
+)
 from thgs.render.config import RasterConfig
 from thgs.render.projection import Projection, project
 
 __all__ = [
+    "LabelWeights",
     "Projection",
     "RasterConfig",
     "RenderOutput",
@@ -15,4 +23,5 @@ __all__ = [
     "project",
     "render",
     "splat_back",
+    "splat_labels",
 ]

@@ -168,6 +168,47 @@ def _splat_back_kernel(
     return feature_sums, weight_sums, max_weights, pixel_counts
 
 
+@numba.njit(cache=True)
+def _label_weights_kernel(
+    order, tile_start, tiles_x, tile_size, width, height, view, settings, labels, label_count
+):
+    """Per (Gaussian, level, label): the summed weight ``Σ_x w(x)`` over pixels with that label.
+
+    Keys are ``(g · levels + level) · label_count + label``; pixels without a label (−1) add to
+    the Gaussian's total weight only.
+    """
+    n = view[1].shape[0]
+    levels = labels.shape[0]
+    sums = numba.typed.Dict.empty(key_type=numba.types.int64, value_type=numba.types.float64)
+    weight_sums = np.zeros(n)
+    max_weights = np.zeros(n)
+    tiles_y = (height + tile_size - 1) // tile_size
+    for tile in range(tiles_x * tiles_y):
+        first, last = tile_start[tile], tile_start[tile + 1]
+        ids = np.empty(last - first, dtype=np.int64)
+        weights = np.empty(last - first)
+        ty, tx = tile // tiles_x, tile % tiles_x
+        for py in range(ty * tile_size, min((ty + 1) * tile_size, height)):
+            for px in range(tx * tile_size, min((tx + 1) * tile_size, width)):
+                count = _composite_pixel(px, py, first, last, order, view, settings, ids, weights)
+                for i in range(count):
+                    g, w = ids[i], weights[i]
+                    weight_sums[g] += w
+                    if w > max_weights[g]:
+                        max_weights[g] = w
+                    for level in range(levels):
+                        label = labels[level, py, px]
+                        if label >= 0:
+                            key = (g * levels + level) * label_count + label
+                            sums[key] = sums.get(key, 0.0) + w
+    keys = np.empty(len(sums), dtype=np.int64)
+    values = np.empty(len(sums))
+    for i, (key, value) in enumerate(sums.items()):
+        keys[i] = key
+        values[i] = value
+    return keys, values, weight_sums, max_weights
+
+
 def _sorted_tiles(projection: Projection, config: RasterConfig):
     """Pairs sorted by tile, then by depth (ties by Gaussian index), and each tile's start."""
     tile_size = config.tile_size
@@ -230,4 +271,18 @@ def splat_back_cpu(
         *_kernel_inputs(projection, config),
         np.ascontiguousarray(pixel_map, dtype=np.float64),
         np.ascontiguousarray(mask, dtype=np.bool_),
+    )
+
+
+def label_weights_cpu(projection: Projection, labels: np.ndarray, config: RasterConfig):
+    """Per-(Gaussian, level, label) weight sums; returns (keys, values, weight sums, max weights).
+
+    ``labels`` is [L, H, W] int (−1 = none); keys encode ``(g · L + level) · count + label`` with
+    ``count = labels.max() + 1``.
+    """
+    label_count = max(int(labels.max()) + 1, 1)
+    return _label_weights_kernel(
+        *_kernel_inputs(projection, config),
+        np.ascontiguousarray(labels, dtype=np.int64),
+        label_count,
     )

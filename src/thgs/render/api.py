@@ -9,12 +9,19 @@ import torch
 from torch import Tensor
 
 from thgs.errors import InputError
-from thgs.render._cpu import render_cpu, splat_back_cpu
+from thgs.render._cpu import label_weights_cpu, render_cpu, splat_back_cpu
 from thgs.render.config import RasterConfig
 from thgs.render.projection import project
 from thgs.scene import Cameras, Gaussians
 
-__all__ = ["RenderOutput", "SplatBackOutput", "render", "splat_back"]
+__all__ = [
+    "LabelWeights",
+    "RenderOutput",
+    "SplatBackOutput",
+    "render",
+    "splat_back",
+    "splat_labels",
+]
 
 
 @dataclass(frozen=True, eq=False)
@@ -58,6 +65,32 @@ class SplatBackOutput:
     pixel_counts: Tensor
     depths: Tensor
     centers: Tensor
+
+
+@dataclass(frozen=True, eq=False)
+class LabelWeights:
+    """How much of each Gaussian's blending weight falls on each label of a label map.
+
+    Sparse: one row per (Gaussian, level, label) with a positive weight, sorted by Gaussian, then
+    level, then label.
+
+    Attributes:
+        gaussians: [P] int64 Gaussian index.
+        levels: [P] int64 level (first axis of the label maps).
+        labels: [P] int64 label.
+        weights: [P] float64 ``Σ_{x: label_level(x) = label} w_g(x)``.
+        weight_sums: [N] float64 ``Σ_x w_g(x)`` over all pixels, labelled or not.
+        max_weights: [N] float64 ``max_x w_g(x)``.
+        depths: [N] float64 camera-space z of each centre (scene units).
+    """
+
+    gaussians: np.ndarray
+    levels: np.ndarray
+    labels: np.ndarray
+    weights: np.ndarray
+    weight_sums: np.ndarray
+    max_weights: np.ndarray
+    depths: np.ndarray
 
 
 def _one_camera(camera: Cameras) -> tuple[int, int]:
@@ -181,4 +214,55 @@ def splat_back(
         pixel_counts=torch.from_numpy(pixel_counts).to(device),
         depths=projection.depths.to(dtype),
         centers=projection.centers.to(dtype),
+    )
+
+
+def splat_labels(
+    gaussians: Gaussians,
+    camera: Cameras,
+    label_maps: np.ndarray,
+    *,
+    config: RasterConfig = RasterConfig(),
+) -> LabelWeights:
+    """Accumulate each Gaussian's blending weight per label of integer label maps.
+
+    The exact counterpart of splatting one-hot maps back (``splat_back`` with one channel per
+    label) without materialising the channels: only the (Gaussian, level, label) triples that
+    occur are stored.
+
+    Args:
+        gaussians: N Gaussians, world frame.
+        camera: one camera; the maps must match its size.
+        label_maps: [L, H, W] integer labels ≥ −1 (−1 = no label) for L levels.
+        config: rasterization settings.
+
+    Raises:
+        InputError: a camera count other than one, maps of the wrong shape or type.
+    """
+    height, width = _one_camera(camera)
+    gaussians.check()
+    label_maps = np.asarray(label_maps)
+    if label_maps.ndim != 3 or label_maps.shape[1:] != (height, width):
+        raise InputError(
+            "label_maps",
+            f"must be [L, {height}, {width}] for this camera, got {list(label_maps.shape)}",
+        )
+    if not np.issubdtype(label_maps.dtype, np.integer) or (
+        label_maps.size and label_maps.min() < -1
+    ):
+        raise InputError("label_maps", "must be integers ≥ −1")
+    projection = project(gaussians, camera, config)
+    keys, values, weight_sums, max_weights = label_weights_cpu(projection, label_maps, config)
+    count = max(int(label_maps.max()) + 1, 1) if label_maps.size else 1
+    order = np.argsort(keys, kind="stable")
+    keys, values = keys[order], values[order]
+    levels = label_maps.shape[0]
+    return LabelWeights(
+        gaussians=keys // (count * levels),
+        levels=(keys // count) % levels,
+        labels=keys % count,
+        weights=values,
+        weight_sums=weight_sums,
+        max_weights=max_weights,
+        depths=projection.depths.cpu().double().numpy(),
     )
