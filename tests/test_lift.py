@@ -70,6 +70,7 @@ def test_occluded_and_unseen_gaussians_get_no_label(method):
         0.999,
     )
     lifted = lift_view(gaussians, front_camera(), whole_view_guidance(), config=LiftConfig(method))
+    assert lifted.labels.dtype == np.int16  # 20 bytes per seen Gaussian and view
     seen = set(lifted.gaussians.tolist())
     assert {0, 1, 2} <= seen
     assert not seen & {5, 6, 7}  # hidden behind opaque layers (T < 1e-4), off-screen, behind
