@@ -318,7 +318,9 @@ def test_splat_labels_matches_brute_force(kind, seed):
                 expected[(int(g), level, label)] = sums[g]
     got = {
         (int(g), int(level), int(label)): w
-        for g, level, label, w in zip(result.gaussians, result.levels, result.labels, result.weights)
+        for g, level, label, w in zip(
+            result.gaussians, result.levels, result.labels, result.weights
+        )
     }
     assert got.keys() == expected.keys()
     for key, value in expected.items():

@@ -1,0 +1,187 @@
+"""Cut-pursuit superpoints on scenes whose answer is known."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from thgs import Gaussians
+from thgs.errors import InputError
+from thgs.graph import GraphConfig, KnnGraph, PartitionConfig, knn_graph, partition
+from thgs.graph.partition import _edge_weights, _features
+from thgs.scene.gaussians import SH_C0
+
+RED, GREEN, BLUE, YELLOW = [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 1.0, 0.0]
+
+
+def surfels(means, rgb, quats=None) -> Gaussians:
+    """2DGS surfels at ``means`` [N, 3], DC colour ``rgb`` [N, 3] in [0, 1], facing +z."""
+    means = np.asarray(means, dtype=np.float64)
+    n = means.shape[0]
+    quats = np.tile([1.0, 0.0, 0.0, 0.0], (n, 1)) if quats is None else quats
+    return Gaussians(
+        means=torch.tensor(means, dtype=torch.float32),
+        quats=torch.tensor(quats, dtype=torch.float32),
+        scales=torch.full((n, 2), -4.0),
+        opacities=torch.zeros(n),
+        sh=torch.tensor((np.asarray(rgb) - 0.5) / SH_C0, dtype=torch.float32)[:, None, :],
+    ).check()
+
+
+def blobs(centres, colours, per: int, sigma: float, seed: int = 0) -> tuple[Gaussians, np.ndarray]:
+    """Gaussian blobs of ``per`` surfels around each centre, one colour each; and the blob ids."""
+    rng = np.random.default_rng(seed)
+    means = np.concatenate([np.asarray(c) + sigma * rng.normal(size=(per, 3)) for c in centres])
+    rgb = np.repeat(np.asarray(colours, dtype=np.float64), per, axis=0)
+    return surfels(means, rgb), np.repeat(np.arange(len(centres)), per)
+
+
+def pieces(graph: KnnGraph) -> int:
+    """Number of connected components of the undirected KNN graph."""
+    valid = graph.valid()
+    rows = np.repeat(np.arange(len(graph)), valid.sum(axis=1))
+    adjacency = coo_matrix((np.ones(rows.size), (rows, graph.neighbors[valid])), (len(graph),) * 2)
+    return connected_components(adjacency, directed=False)[0]
+
+
+def test_separated_blobs_are_recovered_exactly():
+    centres = [[0, 0, 0], [5, 0, 0], [0, 5, 0], [0, 0, 5]]
+    gaussians, truth = blobs(centres, [RED, GREEN, BLUE, YELLOW], 300, 0.3)
+    graph = knn_graph(gaussians)
+    assert pieces(graph) == 4  # farther apart than the radius: the graph falls apart
+    labels = partition(gaussians, graph, graph.distances)
+    assert labels.dtype == np.int32
+    np.testing.assert_array_equal(labels, truth)  # numbered by first Gaussian = blob order
+
+
+def test_touching_blobs_of_different_colour_split_along_the_colour():
+    gaussians, truth = blobs([[0, 0, 0], [0.8, 0, 0]], [RED, BLUE], 400, 0.3, seed=1)
+    graph = knn_graph(gaussians)
+    assert pieces(graph) == 1  # one connected graph: the solver has to cut it
+    labels = partition(gaussians, graph, graph.distances)
+    np.testing.assert_array_equal(labels, truth)
+    # the same geometry in one colour stays one superpoint
+    one_colour = surfels(gaussians.means.numpy(), np.tile(RED, (800, 1)))
+    graph = knn_graph(one_colour)
+    np.testing.assert_array_equal(partition(one_colour, graph, graph.distances), 0)
+
+
+def noisy_plane(n: int = 3000, seed: int = 2) -> Gaussians:
+    """Surfels on a 4 × 4 plane with random colours: the solver wants many small pieces."""
+    rng = np.random.default_rng(seed)
+    means = np.column_stack([rng.uniform(0, 4, (n, 2)), np.zeros(n)])
+    return surfels(means, rng.uniform(0, 1, (n, 3)))
+
+
+def test_min_comp_weight_is_respected():
+    gaussians = noisy_plane()
+    graph = knn_graph(gaussians)
+    assert pieces(graph) == 1
+    free = partition(gaussians, graph, graph.distances, PartitionConfig(min_comp_weight=0))
+    assert np.bincount(free).min() < 10  # without the constraint, small superpoints appear
+    for minimum in (10, 40):
+        labels = partition(
+            gaussians, graph, graph.distances, PartitionConfig(min_comp_weight=minimum)
+        )
+        assert np.bincount(labels).min() >= minimum
+
+
+def test_superpoints_are_connected_contiguous_and_deterministic():
+    gaussians = noisy_plane(seed=4)
+    graph = knn_graph(gaussians)
+    labels = partition(gaussians, graph, graph.distances)
+    count = int(labels.max()) + 1
+    assert count >= 3  # a real partition, not one superpoint
+    _, first = np.unique(labels, return_index=True)
+    assert (np.diff(first) > 0).all() and first[0] == 0  # 0 … S−1 by smallest Gaussian index
+    valid = graph.valid()
+    rows = np.repeat(np.arange(len(graph)), valid.sum(axis=1))
+    columns = graph.neighbors[valid]
+    inside = labels[rows] == labels[columns]
+    adjacency = coo_matrix((np.ones(inside.sum()), (rows[inside], columns[inside])), (3000, 3000))
+    assert connected_components(adjacency, directed=False)[0] == count
+    np.testing.assert_array_equal(partition(gaussians, graph, graph.distances), labels)
+    single = PartitionConfig(max_num_threads=1)
+    np.testing.assert_array_equal(
+        partition(gaussians, graph, graph.distances, single),
+        partition(gaussians, graph, graph.distances, single),
+    )
+
+
+def test_reweighted_distances_drive_the_cut():
+    # one colour, one box: lengthening the edges across x = 0 makes the halves the superpoints
+    rng = np.random.default_rng(5)
+    means = rng.uniform(-1, 1, (600, 3)) * [1.0, 0.5, 0.5]
+    gaussians = surfels(means, np.tile(GREEN, (600, 1)))
+    graph = knn_graph(gaussians)
+    halves = (means[:, 0] >= 0).astype(int)
+    crossing = graph.valid() & (halves[:, None] != halves[np.maximum(graph.neighbors, 0)])
+    lengthened = np.where(crossing, graph.distances * 1000, graph.distances)
+    config = PartitionConfig(spatial_weight=0.2)
+    plain = partition(gaussians, graph, graph.distances, config)
+    assert plain.max() + 1 != 2  # by position alone the box is cut elsewhere
+    labels = partition(gaussians, graph, lengthened, config)
+    np.testing.assert_array_equal(labels, halves if halves[0] == 0 else 1 - halves)
+
+
+def test_an_isolated_gaussian_joins_its_nearest_superpoint():
+    gaussians, _ = blobs([[0, 0, 0]], [RED], 100, 0.2, seed=6)
+    means = np.concatenate([gaussians.means.numpy(), [[6.0, 0, 0]]])
+    lonely = surfels(means, np.tile(RED, (101, 1)))
+    graph = knn_graph(lonely)
+    assert (graph.neighbors[100] == -1).all()  # beyond the radius of everyone
+    np.testing.assert_array_equal(partition(lonely, graph, graph.distances), 0)
+
+
+def test_edge_weights_hand_case():
+    # 0 → 1 (d 1), 1 → 0 (d 3), 1 → 2 (d 2); Gaussian 3 has no edge and is nearest to 2
+    graph = KnnGraph(
+        np.array([[1, -1], [0, 2], [-1, -1], [-1, -1]], dtype=np.int32),
+        np.array([[1, np.inf], [3, 2], [np.inf] * 2, [np.inf] * 2], dtype=np.float32),
+    )
+    means = np.array([[0, 0, 0], [1, 0, 0], [3, 0, 0], [3, 2, 0]], dtype=np.float32)
+    first_edge, targets, weights = _edge_weights(graph, graph.distances, means)
+    np.testing.assert_array_equal(first_edge, [0, 1, 2, 3, 3])  # sources 0, 1, 2
+    np.testing.assert_array_equal(targets, [1, 2, 3])
+    # mean d = 2, w = 1 / (1 + d / 2): (2/3 + 2/5) / 2, 1/2, and 3 → 2 at squared 3-D distance 4
+    np.testing.assert_allclose(weights, [(2 / 3 + 2 / 5) / 2, 1 / 2, 1 / 3])
+
+
+def test_features_scale_positions_and_flip_normals():
+    # surfel 1 is turned upside down (180° about x): its normal is −z
+    quats = np.array([[1.0, 0, 0, 0], [0.0, 1, 0, 0]])
+    gaussians = surfels([[0, 0, 0], [2, 0, 0]], [RED, BLUE], quats)
+    features = _features(gaussians, PartitionConfig(spatial_weight=0.25))
+    np.testing.assert_allclose(features[:, :3], [[-0.5, 0, 0], [0.5, 0, 0]], atol=1e-7)
+    np.testing.assert_allclose(features[:, 3:6], [RED, BLUE], atol=1e-6)
+    np.testing.assert_allclose(features[:, 6:], [[0, 0, 1], [0, 0, -1]], atol=1e-6)
+    flipped = _features(gaussians, PartitionConfig(flip_normals_up=True))
+    np.testing.assert_allclose(flipped[:, 6:], [[0, 0, 1], [0, 0, 1]], atol=1e-6)
+
+
+def test_presets_and_config_checks():
+    lerf, three_dovs = PartitionConfig.lerf(), PartitionConfig.three_dovs()
+    assert (lerf.regularization, lerf.spatial_weight, lerf.flip_normals_up) == (0.1, 0.1, True)
+    assert (three_dovs.regularization, three_dovs.spatial_weight) == (0.3, 0.2)
+    assert (lerf.min_comp_weight, lerf.cp_it_max, lerf.split_damp_ratio) == (10.0, 15, 0.7)
+    for bad in ({"regularization": -1.0}, {"split_damp_ratio": 0.0}, {"cp_it_max": 0}):
+        with pytest.raises(InputError):
+            PartitionConfig(**bad)
+
+
+def test_partition_rejects_inconsistent_inputs():
+    gaussians, _ = blobs([[0, 0, 0]], [RED], 30, 0.2)
+    graph = knn_graph(gaussians, GraphConfig(k=4))
+    with pytest.raises(InputError, match="must match"):
+        partition(gaussians, graph, graph.distances[:, :3])
+    negative = graph.distances.copy()
+    negative[0, 0] = -1.0
+    with pytest.raises(InputError, match="finite"):
+        partition(gaussians, graph, negative)
+    with pytest.raises(InputError, match=r"\[29, K\]"):
+        partition(gaussians.select(np.arange(29)), graph, graph.distances)
+    empty = knn_graph(gaussians.select(np.arange(0)))
+    assert partition(gaussians.select(np.arange(0)), empty, empty.distances).shape == (0,)
