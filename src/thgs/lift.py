@@ -180,7 +180,7 @@ def _exact(
 ) -> ViewLift:
     weights = splat_labels(gaussians, camera, guidance.segments, config=config.raster)
     seen = np.flatnonzero(weights.max_weights > 0).astype(np.int32)
-    labels = np.full((len(weights.weight_sums), len(LEVELS)), -1, dtype=np.int32)
+    labels = np.full((len(seen), len(LEVELS)), -1, dtype=np.int32)
     # rows come sorted by (Gaussian, level, label): order by weight within each (Gaussian, level)
     order = np.lexsort((weights.weights, weights.levels, weights.gaussians))
     g, level = weights.gaussians[order], weights.levels[order]
@@ -189,10 +189,11 @@ def _exact(
     best = order[last]
     share = weights.weights[best] / weights.weight_sums[weights.gaussians[best]]
     keep = best[share > config.share_threshold]
-    labels[weights.gaussians[keep], weights.levels[keep]] = weights.labels[keep]
+    rows = np.searchsorted(seen, weights.gaussians[keep])  # every weighted Gaussian is seen
+    labels[rows, weights.levels[keep]] = weights.labels[keep]
     return ViewLift(
         gaussians=seen,
-        labels=labels[seen],
+        labels=labels,
         depths=weights.depths[seen].astype(np.float32),
         max_weights=weights.max_weights[seen].astype(np.float32),
     )

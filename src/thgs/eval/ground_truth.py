@@ -82,12 +82,10 @@ class Hierarchy:
             self.part_parent.min() < 0 or self.part_parent.max() >= sizes[2]
         ):
             raise InputError(source, "a part's parent is not an object")
-        has = labels[:, 0] >= 0
-        if (
-            not ((labels[:, 0] >= 0) == (labels[:, 1] >= 0)).all()
-            or not ((labels[:, 1] >= 0) == (labels[:, 2] >= 0)).all()
-        ):
+        labelled = labels >= 0
+        if not (labelled == labelled[:, :1]).all():
             raise InputError(source, "a Gaussian is labelled at some levels but not others")
+        has = labelled[:, 0]
         if (
             not (self.subpart_parent[labels[has, 0]] == labels[has, 1]).all()
             or not (self.part_parent[labels[has, 1]] == labels[has, 2]).all()

@@ -57,6 +57,7 @@ import plyfile
 from thgs._atomic import atomic_output
 from thgs.errors import InputError
 from thgs.scene._json import load_json
+from thgs.scene.ply import read_ply_data
 
 __all__ = [
     "SCANNET10_IDS",
@@ -206,17 +207,7 @@ def read_scannet_labels(
             or infinite coordinates; a malformed sidecar. The message names the file.
     """
     path = Path(path)
-    if not path.is_file():
-        raise InputError(path, "no such file")
-    if path.stat().st_size == 0:
-        raise InputError(path, "the file is empty")
-    try:
-        ply = plyfile.PlyData.read(str(path))
-    except Exception as exc:  # plyfile raises several unrelated types for malformed files
-        raise InputError(path, f"not a readable PLY file ({type(exc).__name__}: {exc})") from exc
-    if "vertex" not in ply:
-        raise InputError(path, "no 'vertex' element")
-    vertex = ply["vertex"]
+    vertex = read_ply_data(path)["vertex"]
     names = [prop.name for prop in vertex.properties]
     missing = [name for name in ("x", "y", "z", "label") if name not in names]
     if missing:

@@ -46,6 +46,26 @@ def _numbered(names: list[str], prefix: str) -> list[str]:
     return [name for _, name in found]
 
 
+def read_ply_data(path: Path) -> plyfile.PlyData:
+    """Parse any PLY file that has a ``vertex`` element (Gaussians, ScanNet labels, …).
+
+    Raises:
+        InputError: the file is missing, empty, not a readable PLY, or has no ``vertex`` element.
+    """
+    if not path.is_file():
+        raise InputError(path, "no such file")
+    if path.stat().st_size == 0:
+        raise InputError(path, "the file is empty")
+    try:
+        ply = plyfile.PlyData.read(str(path))
+    except Exception as exc:  # plyfile raises several unrelated types for malformed files
+        raise InputError(path, f"not a readable PLY file ({type(exc).__name__}: {exc})") from exc
+    if "vertex" not in ply:
+        elements = [element.name for element in ply.elements]
+        raise InputError(path, f"no 'vertex' element (elements: {elements})")
+    return ply
+
+
 def read_ply(path: str | os.PathLike[str]) -> Gaussians:
     """Read an INRIA-layout 3DGS or 2DGS PLY file.
 
@@ -61,17 +81,7 @@ def read_ply(path: str | os.PathLike[str]) -> Gaussians:
             quaternion is zero. The message names the file.
     """
     path = Path(path)
-    if not path.is_file():
-        raise InputError(path, "no such file")
-    if path.stat().st_size == 0:
-        raise InputError(path, "the file is empty")
-    try:
-        ply = plyfile.PlyData.read(str(path))
-    except Exception as exc:  # plyfile raises several unrelated types for malformed files
-        raise InputError(path, f"not a readable PLY file ({type(exc).__name__}: {exc})") from exc
-    if "vertex" not in ply:
-        elements = [element.name for element in ply.elements]
-        raise InputError(path, f"no 'vertex' element (elements: {elements})")
+    ply = read_ply_data(path)
     vertex = ply["vertex"]
     others = [element.name for element in ply.elements if element.name != "vertex"]
     if others:

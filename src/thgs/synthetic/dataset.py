@@ -245,6 +245,10 @@ def _write(
 
     evaluated = evaluation_views(len(cameras), config.evaluation_views)
     classes = _object_classes(scene)
+    object_names = scene.hierarchy.names[2]
+    class_objects = {
+        name: [i for i, node in enumerate(object_names) if node == name] for name in classes
+    }
     segmentations: dict[str, dict[str, np.ndarray]] = {}
     categories: dict[str, None] = {}
     masks = 0
@@ -261,13 +265,8 @@ def _write(
             labels = _frame_labels(stem, maps, scene, config.min_label_pixels)
             write_lerf_labels(root / "label" / f"{stem}.json", labels)
             categories.update(dict.fromkeys(labels.categories))
-            objects = maps[2]
             segmentations[f"{index:02d}"] = {
-                name: np.isin(
-                    objects,
-                    [i for i, node in enumerate(scene.hierarchy.names[2]) if node == name],
-                )
-                for name in classes
+                name: np.isin(maps[2], nodes) for name, nodes in class_objects.items()
             }
         if progress is not None:
             progress(index + 1, len(stems))

@@ -162,11 +162,6 @@ def clean_masks(maps: np.ndarray, hierarchy: Hierarchy, min_pixels: int = 1) -> 
     ]
 
 
-def _boxes(ids: np.ndarray, count: int) -> list[tuple[slice, slice] | None]:
-    boxes = ndimage.find_objects(ids + 1, max_label=count)
-    return list(boxes)
-
-
 def _grow(box: tuple[slice, slice], radius: int, shape: tuple[int, int]) -> tuple[slice, slice]:
     return tuple(  # type: ignore[return-value]
         slice(max(0, s.start - radius), min(size, s.stop + radius)) for s, size in zip(box, shape)
@@ -224,7 +219,7 @@ def _merge(masks: LevelMasks, p: float, rng: np.random.Generator) -> LevelMasks:
 
 def _split(masks: LevelMasks, p: float, min_pixels: int, rng: np.random.Generator) -> LevelMasks:
     ids, names = masks.ids.copy(), list(masks.names)
-    for index, box in enumerate(_boxes(masks.ids, len(masks))):
+    for index, box in enumerate(ndimage.find_objects(masks.ids + 1, max_label=len(masks))):
         if box is None or rng.uniform() >= p:
             continue
         rows, cols = np.nonzero(masks.ids[box] == index)
@@ -249,7 +244,7 @@ def _drop(masks: LevelMasks, p: float, rng: np.random.Generator) -> LevelMasks:
 
 def _jitter(masks: LevelMasks, p: float, max_shift: int, rng: np.random.Generator) -> LevelMasks:
     ids = masks.ids.copy()
-    for index, box in enumerate(_boxes(masks.ids, len(masks))):
+    for index, box in enumerate(ndimage.find_objects(masks.ids + 1, max_label=len(masks))):
         if box is None or rng.uniform() >= p:
             continue
         radius = int(rng.integers(1, max_shift + 1))
@@ -274,7 +269,7 @@ def _spurious(
 ) -> LevelMasks:
     ids, names = masks.ids.copy(), list(masks.names)
     height, width = ids.shape
-    yy, xx = np.mgrid[0:height, 0:width]
+    reach = math.ceil(radius[1])
     for _ in range(int(rng.poisson(expected))):
         cy, cx = int(rng.integers(height)), int(rng.integers(width))
         a, b = rng.uniform(radius[0], radius[1], size=2)
@@ -282,10 +277,12 @@ def _spurious(
         name = names_under[cy, cx]
         if name is None:
             continue
+        window = _grow((slice(cy, cy + 1), slice(cx, cx + 1)), reach, ids.shape)
+        yy, xx = np.mgrid[window]
         dx, dy = xx - cx, yy - cy
         u = dx * math.cos(angle) + dy * math.sin(angle)
         v = -dx * math.sin(angle) + dy * math.cos(angle)
-        ids[(u / a) ** 2 + (v / b) ** 2 <= 1.0] = len(names)
+        ids[window][(u / a) ** 2 + (v / b) ** 2 <= 1.0] = len(names)
         names.append(str(name))
     return LevelMasks(ids, tuple(names))
 
@@ -346,13 +343,14 @@ def pool_default(levels: list[LevelMasks]) -> tuple[LevelMasks, list[tuple[int, 
     ids = np.full(height * width, -1, dtype=np.int32)
     for slot, (_, _, _, pixels) in enumerate(candidates):
         ids[pixels] = slot
-    names = tuple(levels[level].names[index] for _, level, index, _ in candidates)
-    sources = [(level, index) for _, level, index, _ in candidates]
-    pooled = LevelMasks(ids.reshape(height, width), names)
-    present = np.zeros(len(candidates), dtype=bool)
-    present[np.unique(pooled.ids[pooled.ids >= 0])] = True
-    compacted = pooled.compact()
-    return compacted, [source for source, kept in zip(sources, present) if kept]
+    visible = np.zeros(len(candidates), dtype=bool)
+    visible[ids[ids >= 0]] = True  # masks painted over completely by smaller ones vanish
+    kept = [candidate for candidate, shown in zip(candidates, visible) if shown]
+    renumber = np.full(len(candidates) + 1, -1, dtype=np.int32)
+    renumber[1:][visible] = np.arange(len(kept), dtype=np.int32)
+    names = tuple(levels[level].names[index] for _, level, index, _ in kept)
+    pooled = LevelMasks(renumber[ids + 1].reshape(height, width), names)
+    return pooled, [(level, index) for _, level, index, _ in kept]
 
 
 def mask_features(

@@ -21,6 +21,7 @@ from scipy.spatial.transform import Rotation
 from thgs.errors import InputError
 from thgs.eval.ground_truth import Hierarchy
 from thgs.scene import Cameras, Gaussians
+from thgs.scene.cameras import viewmat_from_pose
 from thgs.scene.gaussians import SH_C0
 from thgs.synthetic.catalog import (
     FLOOR_OBJECTS,
@@ -166,7 +167,7 @@ def _layout(rng: np.random.Generator, config: SceneConfig) -> tuple[list[PlacedO
     return placed, height
 
 
-def _tables(objects: list[PlacedObject]) -> tuple[list, list, list, list, list]:
+def _tables(objects: list[PlacedObject]) -> tuple[tuple, list, list, list]:
     """Flatten objects → node names per level, parents, and (sub-part, object index) pairs."""
     subpart_names, part_names, object_names = [], [], []
     subpart_parent, part_parent, subparts = [], [], []
@@ -180,7 +181,7 @@ def _tables(objects: list[PlacedObject]) -> tuple[list, list, list, list, list]:
                 subpart_names.append(subpart.name)
                 subparts.append((subpart, o))
     names = (subpart_names, part_names, object_names)
-    return names, subpart_parent, part_parent, subparts, object_names
+    return names, subpart_parent, part_parent, subparts
 
 
 def _allocate(weights: np.ndarray, total: int, minimum: int) -> np.ndarray:
@@ -227,11 +228,9 @@ def _cameras(rng: np.random.Generator, config: SceneConfig, table_height: float)
         forward = (target - eye) / np.linalg.norm(target - eye)
         right = np.cross(forward, [0.0, 0.0, 1.0])
         right /= np.linalg.norm(right)
-        rotation = np.stack([right, np.cross(forward, right), forward])
-        viewmat = np.eye(4)
-        viewmat[:3, :3] = rotation
-        viewmat[:3, 3] = -rotation @ eye
-        viewmats.append(viewmat)
+        # columns: the camera's x (right), y (down) and z (forward) axes in world coordinates
+        camera_to_world = np.stack([right, np.cross(forward, right), forward], axis=1)
+        viewmats.append(viewmat_from_pose(camera_to_world, eye))
         Ks.append(K)
         names.append(f"frame_{i + 1:05d}")
     widths, heights = [config.width] * config.views, [config.height] * config.views
@@ -245,7 +244,7 @@ def generate_scene(config: SceneConfig) -> SyntheticScene:
         np.random.default_rng([config.seed, stream]) for stream in range(3)
     )
     objects, table_height = _layout(layout_rng, config)
-    names, subpart_parent, part_parent, subparts, _ = _tables(objects)
+    names, subpart_parent, part_parent, subparts = _tables(objects)
 
     n_floaters = round(config.floaters * config.gaussians)
     weights = np.array([sub.area * objects[o].model.density for sub, o in subparts])
