@@ -204,7 +204,7 @@ NEG = np.array([[0, 1], [0, 0], [1 / 3, 1], [1, 0]], dtype=np.float32)
 
 
 def test_reweight_absolute_is_the_reference_formula():
-    out = reweight(HAND_GRAPH, POS, NEG, ReweightConfig(mode="absolute"))
+    out = reweight(HAND_GRAPH, POS, NEG, ReweightConfig.reference())
     # d + 0.1·neg − 0.02·pos
     expected = [
         [1 - 0.02, 4 + 0.1 - 0.01],
@@ -219,18 +219,20 @@ def test_reweight_absolute_is_the_reference_formula():
 def test_reweight_relative_scales_the_offsets_by_the_mean_distance():
     out = reweight(HAND_GRAPH, POS, NEG, ReweightConfig(mode="relative"))
     mean = (1 + 4 + 1 + 4 + 2 + 2) / 6
+    # defaults: d + mean · (10·neg − 2·pos), clamped at 0
     expected = [
-        [1 - 0.02 * mean, 4 + 0.09 * mean],
-        [1 - 0.02 * mean, np.inf],
-        [4 + (0.1 / 3 - 0.02) * mean, 2 + 0.08 * mean],
-        [2 + 0.08 * mean, np.inf],
+        [0, 4 + 9 * mean],
+        [0, np.inf],
+        [4 + (10 / 3 - 2) * mean, 2 + 8 * mean],
+        [2 + 8 * mean, np.inf],
     ]
     np.testing.assert_allclose(out, expected, rtol=1e-6)
+    assert ReweightConfig().mode == "relative"
 
 
 def test_relative_mode_is_scale_free_and_absolute_is_not():
     scaled = KnnGraph(HAND_GRAPH.neighbors, HAND_GRAPH.distances * 1000)
-    relative, absolute = ReweightConfig(mode="relative"), ReweightConfig(mode="absolute")
+    relative, absolute = ReweightConfig(), ReweightConfig.reference()
     np.testing.assert_allclose(
         reweight(scaled, POS, NEG, relative),
         1000 * reweight(HAND_GRAPH, POS, NEG, relative),
@@ -244,10 +246,10 @@ def test_relative_mode_is_scale_free_and_absolute_is_not():
 
 def test_reweight_clamps_at_zero_and_none_mode_keeps_distances():
     many = np.full((4, 2), 25.0, dtype=np.float32)
-    out = reweight(HAND_GRAPH, many, np.zeros((4, 2), np.float32), ReweightConfig(mode="absolute"))
+    out = reweight(HAND_GRAPH, many, np.zeros((4, 2), np.float32), ReweightConfig.reference())
     np.testing.assert_allclose(out, [[0.5, 3.5], [0.5, np.inf], [3.5, 1.5], [1.5, np.inf]])
     close = KnnGraph(HAND_GRAPH.neighbors, HAND_GRAPH.distances / 10)  # 0.1 − 0.5 < 0
-    out = reweight(close, many, np.zeros((4, 2), np.float32), ReweightConfig(mode="absolute"))
+    out = reweight(close, many, np.zeros((4, 2), np.float32), ReweightConfig.reference())
     assert out[0, 0] == 0.0 and out[1, 0] == 0.0
     out = reweight(HAND_GRAPH, POS, NEG, ReweightConfig(mode="none"))
     np.testing.assert_array_equal(out, HAND_GRAPH.distances)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -122,9 +124,21 @@ def test_reweighted_distances_drive_the_cut():
     lengthened = np.where(crossing, graph.distances * 1000, graph.distances)
     config = PartitionConfig(spatial_weight=0.2)
     plain = partition(gaussians, graph, graph.distances, config)
-    assert plain.max() + 1 != 2  # by position alone the box is cut elsewhere
+    assert _crossing(plain, halves) > 0  # by position alone the box is cut elsewhere
+    # weights against the graph's own mean: the other edges keep their weight, so the box may
+    # be cut into more pieces, but none crosses x = 0
     labels = partition(gaussians, graph, lengthened, config)
-    np.testing.assert_array_equal(labels, halves if halves[0] == 0 else 1 - halves)
+    assert labels.max() + 1 >= 2 and _crossing(labels, halves) == 0
+    # the reference's mean over the lengthened distances raises every other weight to ~1
+    reference = partition(gaussians, graph, lengthened, replace(config, weight_scale="reweighted"))
+    np.testing.assert_array_equal(reference, halves if halves[0] == 0 else 1 - halves)
+
+
+def _crossing(labels: np.ndarray, halves: np.ndarray) -> int:
+    """How many superpoints hold Gaussians of both halves."""
+    both = np.zeros((labels.max() + 1, 2), dtype=bool)
+    both[labels, halves] = True
+    return int(both.all(axis=1).sum())
 
 
 def test_an_isolated_gaussian_joins_its_nearest_superpoint():
@@ -143,11 +157,18 @@ def test_edge_weights_hand_case():
         np.array([[1, np.inf], [3, 2], [np.inf] * 2, [np.inf] * 2], dtype=np.float32),
     )
     means = np.array([[0, 0, 0], [1, 0, 0], [3, 0, 0], [3, 2, 0]], dtype=np.float32)
-    first_edge, targets, weights = _edge_weights(graph, graph.distances, means)
+    first_edge, targets, weights = _edge_weights(graph, graph.distances, means, graph.distances)
     np.testing.assert_array_equal(first_edge, [0, 1, 2, 3, 3])  # sources 0, 1, 2
     np.testing.assert_array_equal(targets, [1, 2, 3])
     # mean d = 2, w = 1 / (1 + d / 2): (2/3 + 2/5) / 2, 1/2, and 3 → 2 at squared 3-D distance 4
     np.testing.assert_allclose(weights, [(2 / 3 + 2 / 5) / 2, 1 / 2, 1 / 3])
+    # reweighted d' = (1, 3, 10): the graph's mean 2 scales weights, the reweighted mean 14/3 not
+    reweighted = np.where(graph.valid(), [[1, 0], [3, 10], [0, 0], [0, 0]], np.inf)
+    _, _, by_graph = _edge_weights(graph, reweighted, means, graph.distances)
+    np.testing.assert_allclose(by_graph, [(2 / 3 + 2 / 5) / 2, 1 / 6, 1 / 3])
+    _, _, by_reweighted = _edge_weights(graph, reweighted, means, reweighted)
+    w = 1 / (1 + np.array([1, 3, 10, 4]) / (14 / 3))  # 0 → 1, 1 → 0, 1 → 2, 3 → 2
+    np.testing.assert_allclose(by_reweighted, [(w[0] + w[1]) / 2, w[2], w[3]])
 
 
 def test_features_scale_positions_and_flip_normals():

@@ -293,6 +293,14 @@ def test_oracle_guidance_at_severity_zero_is_the_clean_layout(scene, view):
     np.testing.assert_array_equal(guidance.segments[0] >= 0, guidance.segments[1] >= 0)
 
 
+def test_oracle_guidance_of_an_empty_view_has_no_masks(scene):
+    # every fault enabled at full rate, nothing in view: no masks, no feature rows, no crash
+    config = OracleConfig(severity=1.0, min_pixels=1)
+    empty = np.full((24, 32), -1, dtype=np.int64)
+    guidance = oracle_guidance("frame_00001", empty, scene.hierarchy, _FakeEncoder(), config, 0)
+    assert (guidance.segments == -1).all() and guidance.features.shape == (0, 16)
+
+
 def _only(**rates) -> OracleConfig:
     zero = {name: 0.0 for name in ("wrong_level", "merge", "split", "drop", "jitter", "spurious")}
     return OracleConfig(severity=1.0, rates=FaultRates(**{**zero, **rates}), min_pixels=1)

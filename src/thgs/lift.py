@@ -137,12 +137,10 @@ def _latent(
     pixel_map = np.empty((height, width, len(LEVELS) * dim))
     for level in range(len(LEVELS)):
         segments = guidance.segments[level]
-        block = np.where(
-            (segments >= 0)[..., None],
-            codes[np.maximum(segments, 0)],
-            config.background_scale * background[level],
-        )
-        pixel_map[..., level * dim : (level + 1) * dim] = block
+        block = pixel_map[..., level * dim : (level + 1) * dim]
+        block[:] = config.background_scale * background[level]
+        inside = segments >= 0
+        block[inside] = codes[segments[inside]]
     out = splat_back(
         gaussians,
         camera,

@@ -1,6 +1,8 @@
-"""Evaluation data: benchmark label formats (metrics and protocols arrive with the eval stage)."""
+"""Evaluation: benchmark label formats and segmentation scores (protocols arrive with the eval
+stage)."""
 
 from thgs.eval.lerf_ovs import FrameLabels, LabelledObject, read_lerf_labels, write_lerf_labels
+from thgs.eval.metrics import purity
 from thgs.eval.polygons import mask_to_polygons, rasterize_polygon
 from thgs.eval.scannet import (
     SCANNET10_IDS,
@@ -31,6 +33,7 @@ __all__ = [
     "PointLabels",
     "SegmentationSet",
     "mask_to_polygons",
+    "purity",
     "query_text",
     "rasterize_polygon",
     "read_3dovs_segmentations",

@@ -31,13 +31,16 @@ ReweightMode = Literal["relative", "absolute", "none"]
 
 @dataclass(frozen=True)
 class ReweightConfig:
-    """How mask evidence changes the KNN distances. Offsets, cap and depth law are the reference's.
+    """How mask evidence changes the KNN distances. Cap and depth law are the reference's.
+
+    The defaults are ours (relative offsets tuned on the synthetic benchmark, docs/partition.md);
+    :meth:`reference` gives the authors' absolute offsets.
 
     Attributes:
         mode: how the offsets enter the squared 6-D distances d (scene units²):
             ``"relative"`` (ours, default): ``d' = max(0, d + d̄ · (negative_offset · neg −
             positive_offset · pos))`` with ``d̄`` the mean of d over all present edges, so the
-            offsets are fractions of the typical edge and the effect does not depend on the
+            offsets are multiples of the typical edge and the effect does not depend on the
             scene's scale; ``"absolute"`` (the reference): ``d' = max(0, d + negative_offset · neg −
             positive_offset · pos)``, offsets in scene units²; ``"none"`` (ablation): d' = d.
         level: the mask level whose labels vote, as a column of ``ViewLift.labels`` (0 default,
@@ -47,13 +50,16 @@ class ReweightConfig:
             weights" ablation, f = 1.
         depth_start: depth (scene units) up to which votes count fully (5.0).
         cap: after all views, both counts are clamped to [0, cap] (25, in votes).
-        negative_offset: distance added per negative vote (0.1): scene units² in absolute mode,
-            multiples of the mean squared edge distance d̄ in relative mode.
-        positive_offset: distance removed per positive vote (0.02), same units as
-            ``negative_offset``.
+        negative_offset: distance added per negative vote: multiples of the mean squared edge
+            distance d̄ in relative mode (10: one disagreeing vote makes an edge ~11 times the
+            typical one), scene units² in absolute mode (reference 0.1).
+        positive_offset: distance removed per positive vote, same units as ``negative_offset``
+            (relative 2, reference 0.02; the reference's 5 : 1 ratio is kept).
         min_max_weight: a Gaussian votes in a view only if its ``max_x w(x)`` there is at least
             this (0.0: every labelled Gaussian votes, as in the reference, where the lifting's
-            confidence threshold already decides what is labelled). Applies to both ends of an edge.
+            confidence threshold already decides what is labelled). Applies to both ends of an
+            edge. Raising it keeps Gaussians seen only through an occluder from voting, but on
+            the synthetic benchmark 0.05 did not raise purity (docs/partition.md).
     """
 
     mode: ReweightMode = "relative"
@@ -61,9 +67,14 @@ class ReweightConfig:
     depth_decay: bool = True
     depth_start: float = 5.0
     cap: float = 25.0
-    negative_offset: float = 0.1
-    positive_offset: float = 0.02
+    negative_offset: float = 10.0
+    positive_offset: float = 2.0
     min_max_weight: float = 0.0
+
+    @classmethod
+    def reference(cls) -> ReweightConfig:
+        """The authors' reweighting: absolute offsets 0.1 / 0.02 (scene units²), level s."""
+        return cls(mode="absolute", negative_offset=0.1, positive_offset=0.02)
 
     def __post_init__(self) -> None:
         if self.mode not in ("relative", "absolute", "none"):

@@ -205,7 +205,6 @@ def _merge(masks: LevelMasks, p: float, rng: np.random.Generator) -> LevelMasks:
     pairs = np.unique(np.sort(pairs, axis=1), axis=0)
     areas = np.bincount(ids[ids >= 0], minlength=len(masks))
     target = np.arange(len(masks))
-    names = list(masks.names)
     used = np.zeros(len(masks), dtype=bool)
     for a, b in pairs:
         if rng.uniform() >= p or used[a] or used[b]:
@@ -213,8 +212,10 @@ def _merge(masks: LevelMasks, p: float, rng: np.random.Generator) -> LevelMasks:
         used[a] = used[b] = True
         keep, gone = (a, b) if areas[a] >= areas[b] else (b, a)
         target[gone] = keep
-    merged = np.where(ids >= 0, target[np.maximum(ids, 0)], -1).astype(np.int32)
-    return LevelMasks(merged, tuple(names))
+    merged = np.full(ids.shape, -1, dtype=np.int32)
+    inside = ids >= 0
+    merged[inside] = target[ids[inside]]
+    return LevelMasks(merged, masks.names)
 
 
 def _split(masks: LevelMasks, p: float, min_pixels: int, rng: np.random.Generator) -> LevelMasks:

@@ -1,0 +1,47 @@
+"""Scores of a segmentation of the Gaussians against ground truth."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from thgs.errors import InputError
+
+__all__ = ["purity"]
+
+
+def purity(labels: np.ndarray, truth: np.ndarray) -> float:
+    """The share of Gaussians whose region's majority ground-truth node is their own.
+
+    Each region (a value ≥ 0 of ``labels``) is assigned the ground-truth node that most of its
+    Gaussians with ground truth belong to; a Gaussian counts as pure
+    when that node is its own. Gaussians without ground truth (``truth`` −1, e.g. floaters) are
+    left out entirely; Gaussians in no region (``labels`` −1) count as impure. 1.0 means no
+    region straddles two nodes; it says nothing about over-segmentation (one region per
+    Gaussian is pure), so report the region count beside it.
+
+    Args:
+        labels: [N] integer region id per Gaussian, −1 = none.
+        truth: [N] integer ground-truth node per Gaussian at one level, −1 = none.
+
+    Returns:
+        purity in [0, 1]; 1.0 if no Gaussian has ground truth.
+
+    Raises:
+        InputError: shapes differ or ids below −1.
+    """
+    labels = np.asarray(labels)
+    truth = np.asarray(truth)
+    if labels.shape != truth.shape or labels.ndim != 1:
+        raise InputError("purity", f"labels {labels.shape} and truth {truth.shape} must be [N]")
+    if (labels.size and labels.min() < -1) or (truth.size and truth.min() < -1):
+        raise InputError("purity", "ids must be ≥ −1")
+    keep = truth >= 0
+    if not keep.any():
+        return 1.0
+    regions, truth = labels[keep].astype(np.int64), truth[keep].astype(np.int64)
+    inside = regions >= 0
+    nodes = int(truth.max()) + 1
+    pairs, counts = np.unique(regions[inside] * nodes + truth[inside], return_counts=True)
+    majority = np.zeros(int(regions.max()) + 1 if inside.any() else 0, dtype=np.int64)
+    np.maximum.at(majority, pairs // nodes, counts)
+    return float(majority.sum() / keep.sum())
