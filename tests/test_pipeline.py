@@ -19,9 +19,9 @@ from thgs.eval.ground_truth import Hierarchy
 from thgs.graph import ReweightConfig
 from thgs.guidance import ViewGuidance
 from thgs.lift import LiftConfig
-from thgs.pipeline import SuperpointConfig, partition_scene
+from thgs.pipeline import PosedScene, SuperpointConfig, partition_scene
 from thgs.render import render
-from thgs.synthetic import OracleConfig, generate_scene, oracle_guidance, preset, render_view
+from thgs.synthetic import OracleConfig, generate_scene, oracle_guidance, preset
 
 
 @dataclass(frozen=True)
@@ -65,7 +65,9 @@ def plane_scene(side: int = 80, views: int = 8) -> tuple[Posed, Hierarchy]:
     return Posed(gaussians, cameras), hierarchy
 
 
-def oracle_views(scene: Posed, hierarchy: Hierarchy, config: OracleConfig) -> list[ViewGuidance]:
+def oracle_views(
+    scene: PosedScene, hierarchy: Hierarchy, config: OracleConfig
+) -> list[ViewGuidance]:
     """The synthetic oracle's masks (with its SAM-like faults) for every camera."""
     encoder = _FakeEncoder()
     guidance = []
@@ -117,13 +119,7 @@ def test_partition_scene_is_deterministic_and_reports(plane):
 def test_synthetic_scene_superpoints_are_pure_and_coarse():
     # a reduced synth-small (20k Gaussians, 12 views) with the oracle's default faults
     synthetic = generate_scene(preset("synth-small", gaussians=20_000, views=12))
-    encoder = _FakeEncoder()
-    guidance = []
-    for i, stem in enumerate(synthetic.cameras.stems):
-        _, max_id = render_view(synthetic, i, (1.0, 1.0, 1.0))
-        guidance.append(
-            oracle_guidance(stem, max_id, synthetic.hierarchy, encoder, OracleConfig(), i)
-        )
+    guidance = oracle_views(synthetic, synthetic.hierarchy, OracleConfig())
     labels, report = partition_scene(synthetic, guidance)
     assert purity(labels, synthetic.hierarchy.labels[:, 0]) >= 0.95
     assert purity(labels, synthetic.hierarchy.labels[:, 2]) >= 0.99

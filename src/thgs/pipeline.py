@@ -152,8 +152,6 @@ def partition_lifted(
     n = len(gaussians)
     if n == 0:
         raise InputError("scene", "has no Gaussians to partition")
-    for index, view in enumerate(lifted):
-        view.check(n, source=f"lifted view {index}")
     seconds: dict[str, float] = {}
     started = time.perf_counter()
     graph = knn_graph(gaussians, config.graph)

@@ -172,7 +172,6 @@ def pair_affinity(
         histogram = coo_matrix(
             (np.ones(unit.size), (unit, mask)), shape=(count, masks.size)
         ).tocsr()
-        histogram.sum_duplicates()
         norms = np.sqrt(np.asarray(histogram.multiply(histogram).sum(axis=1)).ravel())
         share = np.bincount(unit, minlength=count) / np.maximum(sizes, 1)
         scale = np.divide(1.0, norms, out=np.zeros(count), where=norms > 0)
