@@ -55,6 +55,19 @@ def test_unit_graph_matches_brute_force():
     assert (one == one.T).all() and not one.diagonal().any()
 
 
+@pytest.mark.parametrize("links", [127, 128, 150, 256, 300])
+def test_units_joined_by_many_gaussian_pairs_touch(links):
+    # regression: counting the Gaussian pairs between two units in int8 wrapped at 128, and
+    # units joined by 128–255 (mod 256) pairs were taken for 2-hop or unrelated units
+    units = np.repeat([0, 1, 2], links)
+    neighbors = np.stack([np.arange(3 * links), np.arange(3 * links)], axis=1)
+    neighbors[:links, 1] += links  # every Gaussian of unit 0 has one of unit 1 as neighbour
+    neighbors[links : links + 1, 1] = 2 * links  # one pair joins units 1 and 2
+    graph = unit_graph(units, neighbors)
+    assert graph.pairs.tolist() == [[0, 1], [0, 2], [1, 2]]
+    assert graph.hops.tolist() == [1, 2, 1]
+
+
 def _brute_affinity(units, count, a, b, sources):
     sizes = np.bincount(units, minlength=count)
     numerator = denominator = 0.0

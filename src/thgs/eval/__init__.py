@@ -2,7 +2,7 @@
 stage)."""
 
 from thgs.eval.lerf_ovs import FrameLabels, LabelledObject, read_lerf_labels, write_lerf_labels
-from thgs.eval.metrics import purity
+from thgs.eval.metrics import best_iou, matched_miou, purity
 from thgs.eval.polygons import mask_to_polygons, rasterize_polygon
 from thgs.eval.scannet import (
     SCANNET10_IDS,
@@ -32,7 +32,9 @@ __all__ = [
     "LabelledObject",
     "PointLabels",
     "SegmentationSet",
+    "best_iou",
     "mask_to_polygons",
+    "matched_miou",
     "purity",
     "query_text",
     "rasterize_polygon",

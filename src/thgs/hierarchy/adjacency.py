@@ -72,8 +72,9 @@ def unit_graph(units: np.ndarray, neighbors: np.ndarray, count: int | None = Non
     b = units[neighbors.ravel()]
     different = a != b
     a, b = a[different], b[different]
-    one = coo_matrix((np.ones(a.size, dtype=np.int8), (a, b)), shape=(u, u)).tocsr()
-    one = ((one + one.T) > 0).astype(np.int8).tocsr()
+    # int64 counts: a narrow dtype would wrap when many Gaussian pairs join two units
+    one = coo_matrix((np.ones(a.size, dtype=np.int64), (a, b)), shape=(u, u)).tocsr()
+    one = ((one + one.T) > 0).astype(np.int64).tocsr()
     two = (one @ one + one).tocsr()
     two.setdiag(0)
     two.eliminate_zeros()
