@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import subprocess
 import sys
@@ -81,3 +82,94 @@ def test_console_script_on_bundled_sample():
     )
     assert result.returncode == 0, result.stderr
     assert "1,000 (3DGS, SH degree 3" in result.stdout
+
+
+@pytest.fixture(scope="module")
+def small_dataset(tmp_path_factory):
+    """A reduced synthetic dataset written by `thgs synth` (4,000 Gaussians, 8 views)."""
+    folder = tmp_path_factory.mktemp("synth") / "scene"
+    entrypoint_args = ["synth", "synth-small", str(folder), "--gaussians", "4000", "--views", "8"]
+    try:
+        entrypoint(entrypoint_args)
+    except SystemExit as exc:  # pragma: no cover - the command returns normally
+        assert not exc.code
+    return folder
+
+
+def test_build_writes_a_field_of_the_scene(small_dataset, tmp_path, capsys):
+    from thgs import load_scene
+    from thgs.field import load_field, scene_fingerprint
+
+    out = tmp_path / "scene.thgs"
+    code, stdout, err = run(["build", str(small_dataset), "-o", str(out)], capsys)
+    assert code == 0, err
+    field = load_field(out)
+    assert field.fingerprint == scene_fingerprint(load_scene(small_dataset).gaussians)
+    assert field.space == "sentence-transformers/all-MiniLM-L6-v2"
+    assert field.config["features"]["mode"] == "shares"
+    assert f"wrote {out}" in stdout.replace("\n", "") and "regions" in stdout
+    counts = field.region_counts
+    assert counts[0] >= counts[1] >= counts[2] >= counts[3] >= 1
+
+    three = tmp_path / "3dovs.thgs"
+    code, _, err = run(
+        ["build", str(small_dataset), "-o", str(three), "--preset", "3dovs", "--reference"],
+        capsys,
+    )
+    assert code == 0, err
+    config = load_field(three).config
+    assert config["features"]["mode"] == "centres"
+    assert config["merge"]["min_region_gaussians"] == 100
+    assert config["superpoints"]["reweight"]["mode"] == "absolute"
+
+
+def test_build_names_missing_guidance(small_dataset, tmp_path, capsys):
+    missing = tmp_path / "nowhere"
+    code, out, err = run(
+        ["build", str(small_dataset), "-o", str(tmp_path / "f.thgs"), "--guidance", str(missing)],
+        capsys,
+    )
+    assert code == 2 and out == ""
+    assert str(missing) in err.replace("\n", "") and "not found" in err
+    assert not (tmp_path / "f.thgs").exists()
+
+
+def test_demo_builds_queries_and_reports(tmp_path, capsys):
+    out = tmp_path / "demo"
+    argv = ["demo", "-o", str(out), "--cache", str(tmp_path / "cache")]
+    argv += ["--gaussians", "4000", "--views", "8", "--query", "mug", "table"]
+    code, stdout, err = run(argv, capsys)
+    assert code == 0, err
+    report = json.loads((out / "report.json").read_text())
+    assert report["generated"] is True
+    assert [q["text"] for q in report["queries"]] == ["mug", "table"]
+    for query in report["queries"]:
+        assert (out / query["image"]).is_file() and len(query["regions"]) == 3
+        assert 0.0 <= query["iou"] <= 1.0
+    assert set(report["miou"]) == {"subpart", "part", "object"}
+    assert all(0.0 < value <= 1.0 for value in report["miou"].values())
+    assert (out / "levels.png").is_file() and (out / "field.thgs").is_file()
+    assert "matched mIoU" in stdout and "query-mug.png" in stdout
+    # a second run reuses the cached scene
+    code, _, err = run(argv, capsys)
+    assert code == 0, err
+    assert json.loads((out / "report.json").read_text())["generated"] is False
+
+
+def test_console_script_demo(tmp_path):
+    """The README's main job, reduced: the installed `thgs demo` on a small synthetic scene."""
+    executable = shutil.which("thgs", path=str(Path(sys.executable).parent))
+    if executable is None:
+        pytest.skip("the thgs console script is not installed next to this Python")
+    result = subprocess.run(
+        [executable, "demo", "--gaussians", "3000", "--views", "6", "-o", str(tmp_path / "out")],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        check=False,
+        timeout=300,
+        env={**os.environ, "THGS_CACHE": str(tmp_path / "cache")},
+    )
+    assert result.returncode == 0, result.stderr
+    assert "text queries" in result.stdout
+    assert (tmp_path / "cache" / "synth-small-seed0-3000g-6v" / "synthetic.json").is_file()

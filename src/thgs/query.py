@@ -19,6 +19,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.special import expit
 
 from thgs.errors import InputError
 from thgs.field import SemanticField
@@ -67,7 +68,7 @@ def relevancy(
     query_scores = queries @ features.T  # [Q, R]
     canonical_scores = canonical @ features.T  # [C, R]
     margin = query_scores[:, None, :] - canonical_scores[None, :, :]  # [Q, C, R]
-    scores = 1.0 / (1.0 + np.exp(-temperature * margin.min(axis=1)))
+    scores = expit(temperature * margin.min(axis=1))
     scores[:, ~np.asarray(seen, dtype=bool)] = 0.0
     return scores[0] if single else scores
 

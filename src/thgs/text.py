@@ -20,11 +20,15 @@ import numpy as np
 
 from thgs.errors import ThgsError
 
-__all__ = ["MINILM_SPACE", "MiniLMEncoder", "TextEncoder", "load_text_encoder"]
+__all__ = ["LANGSPLAT_SPACE", "MINILM_SPACE", "MiniLMEncoder", "TextEncoder", "load_text_encoder"]
 
 logger = logging.getLogger(__name__)
 
 MINILM_SPACE = "sentence-transformers/all-MiniLM-L6-v2"
+
+LANGSPLAT_SPACE = "laion/CLIP-ViT-B-16-laion2B-s34B-b88K"
+"""The space of LangSplat-format features: OpenCLIP ViT-B/16 ``laion2b_s34b_b88k`` (512-D), the
+reference's model, named by its Hugging Face copy."""
 
 
 class TextEncoder(Protocol):
@@ -43,6 +47,22 @@ class TextEncoder(Protocol):
     def encode(self, texts: list[str] | tuple[str, ...]) -> np.ndarray:
         """[len(texts), D] float32 unit rows."""
         ...
+
+
+def _quietly(load):
+    """Run ``load()`` without transformers' weight-loading progress bar (only the CLI shows
+    progress)."""
+    try:
+        from transformers.utils import logging as transformers_logging
+    except ImportError:
+        return load()
+    enabled = transformers_logging.is_progress_bar_enabled()
+    transformers_logging.disable_progress_bar()
+    try:
+        return load()
+    finally:
+        if enabled:
+            transformers_logging.enable_progress_bar()
 
 
 class MiniLMEncoder:
@@ -82,7 +102,9 @@ class MiniLMEncoder:
         if not (model_path / "modules.json").is_file():
             raise ThgsError(f"{model_path}: not a sentence-transformers model folder")
         os.environ.setdefault("HF_HUB_OFFLINE", "1")
-        self._model = SentenceTransformer(str(model_path), device=device, local_files_only=True)
+        self._model = _quietly(
+            lambda: SentenceTransformer(str(model_path), device=device, local_files_only=True)
+        )
         model = self._model
         dimension = (
             model.get_embedding_dimension

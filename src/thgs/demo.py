@@ -1,0 +1,376 @@
+"""The demo: a synthetic scene, its semantic field, a few text queries, a report and pictures.
+
+:func:`run_demo` generates a synthetic dataset once (cached), builds its field with the LERF
+preset, scores every level against the exact ground truth, runs text queries with the paper's
+selection and writes into ``out``::
+
+    field.thgs              the semantic field (thgs.field.load_field)
+    report.json, report.md  per-level agreement with ground truth, timings, query results
+    levels.png              one view coloured by region at levels 0–3, beside the input image
+    query-<text>.png        one view with each query's selection (rendered opacity > 0.5) tinted
+
+The synthetic features are all-MiniLM-L6-v2 text embeddings standing in for CLIP
+(docs/synthetic.md), so the queries run offline.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import re
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+from PIL import Image
+
+from thgs._atomic import atomic_output
+from thgs.errors import InputError
+from thgs.eval import matched_miou, purity
+from thgs.eval.ground_truth import Hierarchy, read_hierarchy
+from thgs.field import FIELD_LEVELS, SemanticField, save_field
+from thgs.guidance import load_guidance, read_embedding_space
+from thgs.pipeline import FieldConfig, Progress, build_field
+from thgs.query import CANONICAL_PHRASES, select_reference
+from thgs.render import render
+from thgs.scene import Scene, load_scene
+from thgs.synthetic import (
+    DatasetConfig,
+    OracleConfig,
+    evaluation_views,
+    generate_scene,
+    preset,
+    write_dataset,
+)
+from thgs.text import MINILM_SPACE, TextEncoder, load_text_encoder
+
+__all__ = ["DemoReport", "QueryResult", "default_cache", "demo_queries", "run_demo"]
+
+logger = logging.getLogger(__name__)
+
+_HIGHLIGHT = np.array([0.0, 0.9, 1.0])
+
+
+def default_cache() -> Path:
+    """``$THGS_CACHE``, else ``$XDG_CACHE_HOME/thgs``, else ``~/.cache/thgs``."""
+    if os.environ.get("THGS_CACHE"):
+        return Path(os.environ["THGS_CACHE"])
+    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    return Path(base) / "thgs"
+
+
+@dataclass(frozen=True)
+class QueryResult:
+    """One text query.
+
+    Attributes:
+        text: the query.
+        regions: selected ``(level, region, relevancy)``, most relevant first.
+        selected: number of Gaussians selected.
+        truth: number of Gaussians whose ground-truth name (at any level) is the query.
+        iou: 3-D IoU of the selection with those Gaussians (NaN when there are none).
+        image: the picture of the selection.
+    """
+
+    text: str
+    regions: tuple[tuple[int, int, float], ...]
+    selected: int
+    truth: int
+    iou: float
+    image: Path
+
+
+@dataclass(frozen=True)
+class DemoReport:
+    """What :func:`run_demo` did and measured.
+
+    Attributes:
+        dataset: the cached synthetic dataset.
+        generated: whether it was generated now (False: reused from the cache).
+        field_path: the saved semantic field.
+        gaussians, views: scene size.
+        region_counts: regions at levels 0–3.
+        ground_truth_counts: ground-truth sub-parts, parts, objects.
+        miou: matched-region mIoU of levels 1–3 against sub-parts, parts, objects.
+        superpoint_purity: share of Gaussians whose superpoint's majority sub-part is theirs.
+        timings: seconds per build stage.
+        seconds: wall time of the whole demo.
+        queries: one :class:`QueryResult` per query.
+        files: everything written to ``out``.
+    """
+
+    dataset: Path
+    generated: bool
+    field_path: Path
+    gaussians: int
+    views: int
+    region_counts: tuple[int, int, int, int]
+    ground_truth_counts: tuple[int, int, int]
+    miou: tuple[float, float, float]
+    superpoint_purity: float
+    timings: dict[str, float]
+    seconds: float
+    queries: tuple[QueryResult, ...]
+    files: tuple[Path, ...]
+
+    def to_json(self) -> dict:
+        return {
+            "dataset": str(self.dataset),
+            "generated": self.generated,
+            "field": str(self.field_path),
+            "gaussians": self.gaussians,
+            "views": self.views,
+            "region_counts": dict(zip(FIELD_LEVELS, self.region_counts)),
+            "ground_truth_counts": dict(zip(FIELD_LEVELS[1:], self.ground_truth_counts)),
+            "miou": dict(zip(FIELD_LEVELS[1:], self.miou)),
+            "superpoint_purity": self.superpoint_purity,
+            "timings": self.timings,
+            "build_seconds": sum(self.timings.values()),
+            "seconds": self.seconds,
+            "queries": [
+                {
+                    "text": q.text,
+                    "regions": [
+                        {"level": level, "region": region, "relevancy": score}
+                        for level, region, score in q.regions
+                    ],
+                    "selected": q.selected,
+                    "truth": q.truth,
+                    "iou": None if np.isnan(q.iou) else q.iou,
+                    "image": q.image.name,
+                }
+                for q in self.queries
+            ],
+        }
+
+    def markdown(self) -> str:
+        levels = FIELD_LEVELS[1:]
+        lines = [
+            "# thgs demo",
+            "",
+            f"Scene: {self.dataset} ({self.gaussians:,} Gaussians, {self.views} views); "
+            f"field: {self.field_path.name}.",
+            "",
+            "| level | regions | ground truth | matched mIoU |",
+            "|---|---|---|---|",
+            f"| superpoint | {self.region_counts[0]:,} | – | purity {self.superpoint_purity:.3f} |",
+        ]
+        for k, name in enumerate(levels):
+            lines.append(
+                f"| {name} | {self.region_counts[k + 1]:,} | {self.ground_truth_counts[k]} "
+                f"| {self.miou[k]:.3f} |"
+            )
+        lines += ["", "| query | selected regions (level:region relevancy) | 3-D IoU |"]
+        lines.append("|---|---|---|")
+        for q in self.queries:
+            regions = ", ".join(f"{lv}:{r} {s:.3f}" for lv, r, s in q.regions)
+            iou = "–" if np.isnan(q.iou) else f"{q.iou:.3f}"
+            lines.append(f"| {q.text} | {regions} | {iou} |")
+        timings = ", ".join(f"{stage} {seconds:.2f} s" for stage, seconds in self.timings.items())
+        lines += [
+            "",
+            f"Build: {sum(self.timings.values()):.1f} s ({timings}).",
+            f"Whole demo: {self.seconds:.1f} s.",
+            "",
+        ]
+        return "\n".join(lines)
+
+
+def demo_queries(hierarchy: Hierarchy, objects: int = 3, parts: int = 2) -> tuple[str, ...]:
+    """Default queries: the first ``objects`` object names and ``parts`` part names that are not
+    also object names (the floor left out), in the scene's order."""
+    object_names = [n for n in dict.fromkeys(hierarchy.names[2]) if n != "floor"]
+    part_names = [
+        n for n in dict.fromkeys(hierarchy.names[1]) if n != "floor" and n not in object_names
+    ]
+    return tuple(object_names[:objects] + part_names[:parts])
+
+
+def _dataset(
+    cache: Path,
+    name: str,
+    seed: int,
+    gaussians: int | None,
+    views: int | None,
+    encoder: TextEncoder,
+    progress: Progress | None,
+) -> tuple[Path, bool]:
+    overrides = {"seed": seed}
+    tag = f"{name}-seed{seed}"
+    if gaussians is not None:
+        overrides["gaussians"] = gaussians
+        tag += f"-{gaussians}g"
+    if views is not None:
+        overrides["views"] = views
+        tag += f"-{views}v"
+    folder = cache / tag
+    if (folder / "synthetic.json").is_file():
+        logger.info("reusing the cached dataset %s", folder)
+        return folder, False
+    config = preset(name, **overrides)
+    scene = generate_scene(config)
+    write_dataset(
+        folder,
+        scene,
+        encoder,
+        oracle=OracleConfig(seed=seed),
+        config=DatasetConfig(),
+        overwrite=folder.exists(),
+        progress=None if progress is None else lambda d, t: progress("generate", d, t),
+    )
+    return folder, True
+
+
+def _slug(text: str) -> str:
+    return re.sub(r"[^a-z0-9]+", "-", text.lower()).strip("-") or "query"
+
+
+def _palette(count: int, seed: int) -> np.ndarray:
+    return np.random.default_rng(seed).uniform(0.15, 1.0, size=(count, 3))
+
+
+def _render(scene: Scene, view: int, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    out = render(
+        scene.gaussians, scene.cameras.select([view]), torch.from_numpy(values.astype(np.float32))
+    )
+    return out.image.numpy().astype(np.float64), out.alpha.numpy().astype(np.float64)
+
+
+def _write_png(path: Path, image: np.ndarray) -> None:
+    pixels = (np.clip(image, 0.0, 1.0) * 255 + 0.5).astype(np.uint8)
+    with atomic_output(path) as handle:
+        Image.fromarray(pixels).save(handle, format="PNG")
+
+
+def _levels_picture(scene: Scene, field: SemanticField, view: int, rgb: np.ndarray) -> np.ndarray:
+    panels = [rgb]
+    for k in range(4):
+        colors = _palette(field.region_counts[k], k)[field.labels[:, k]]
+        image, _ = _render(scene, view, colors)
+        panels.append(image)
+    return np.concatenate(panels, axis=1)
+
+
+def run_demo(
+    out: str | os.PathLike[str],
+    *,
+    cache: str | os.PathLike[str] | None = None,
+    scene_preset: str = "synth-small",
+    seed: int = 0,
+    gaussians: int | None = None,
+    views: int | None = None,
+    queries: Sequence[str] | None = None,
+    progress: Progress | None = None,
+) -> DemoReport:
+    """Generate (or reuse) a synthetic scene, build its field, query it, and report.
+
+    Args:
+        out: folder for the field, the report and the pictures (created; files replaced).
+        cache: where generated datasets are kept (default :func:`default_cache`).
+        scene_preset: ``synth-small`` (50k Gaussians, 24 views), ``synth-medium`` or
+            ``synth-large``.
+        seed: scene and oracle seed.
+        gaussians, views: override the preset's size (smaller scenes for quick checks).
+        queries: texts to query; default :func:`demo_queries` of the scene.
+        progress: ``progress(stage, done, total)`` for ``generate`` (views written) and the
+            stages of :func:`thgs.pipeline.build_field`.
+
+    Returns:
+        a :class:`DemoReport`; the files it lists are written atomically.
+
+    Raises:
+        InputError: an unknown preset, ``out`` that is a file, or an empty query.
+        ThgsError: the offline text model is not installed (``pip install 'thgs[demo]'``).
+    """
+    started = time.perf_counter()
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise InputError(out, "exists and is not a folder")
+    if queries is not None and not all(q.strip() for q in queries):
+        raise InputError("queries", "an empty query")
+    cache = Path(cache) if cache is not None else default_cache()
+    encoder = load_text_encoder(MINILM_SPACE)
+    folder, generated = _dataset(cache, scene_preset, seed, gaussians, views, encoder, progress)
+    scene = load_scene(folder)
+    features_dir = folder / "language_features"
+    recorded = read_embedding_space(features_dir)
+    if recorded is None:
+        raise InputError(features_dir, "records no embedding space (embedding.json)")
+    space = recorded[0]
+    if space != encoder.space:
+        raise InputError(features_dir, f"features are in {space!r}, expected {encoder.space!r}")
+    guidance = load_guidance(features_dir, scene.cameras)
+    field = build_field(scene, guidance, FieldConfig.lerf(), space=space, progress=progress)
+    out.mkdir(parents=True, exist_ok=True)
+    field_path = out / "field.thgs"
+    save_field(field_path, field)
+    files = [field_path]
+
+    hierarchy = read_hierarchy(folder / "ground_truth.safetensors")
+    truth = hierarchy.labels
+    miou = tuple(matched_miou(field.labels[:, k], truth[:, k - 1]) for k in (1, 2, 3))
+    view = evaluation_views(len(scene.cameras), 4)[0]
+    rgb, _ = _render(scene, view, scene.gaussians.dc_colors().detach().cpu().numpy())
+    levels_path = out / "levels.png"
+    _write_png(levels_path, _levels_picture(scene, field, view, rgb))
+    files.append(levels_path)
+
+    texts = tuple(queries) if queries is not None else demo_queries(hierarchy)
+    canonical = encoder.encode(list(CANONICAL_PHRASES))
+    embeddings = encoder.encode(list(texts))
+    names = [hierarchy.level_names(level) for level in range(3)]
+    results = []
+    for text, embedding in zip(texts, embeddings):
+        selection = select_reference(field, embedding, canonical)
+        wanted = np.zeros(len(field), dtype=bool)
+        for level_names in names:
+            wanted |= level_names == text
+        union = (selection.gaussians | wanted).sum()
+        iou = float((selection.gaussians & wanted).sum() / union) if wanted.any() else np.nan
+        coverage, _ = _render(scene, view, selection.gaussians[:, None].astype(np.float64))
+        tinted = np.where(
+            (coverage[..., 0] > 0.5)[..., None], 0.45 * rgb + 0.55 * _HIGHLIGHT, 0.55 * rgb
+        )
+        image = out / f"query-{_slug(text)}.png"
+        _write_png(image, np.concatenate([rgb, tinted], axis=1))
+        files.append(image)
+        results.append(
+            QueryResult(
+                text=text,
+                regions=selection.regions,
+                selected=int(selection.gaussians.sum()),
+                truth=int(wanted.sum()),
+                iou=iou,
+                image=image,
+            )
+        )
+        logger.info("query %r: %d Gaussians, IoU %.3f", text, selection.gaussians.sum(), iou)
+
+    report = DemoReport(
+        dataset=folder,
+        generated=generated,
+        field_path=field_path,
+        gaussians=len(field),
+        views=len(scene.cameras),
+        region_counts=field.region_counts,
+        ground_truth_counts=tuple(len(level) for level in hierarchy.names),
+        miou=miou,
+        superpoint_purity=purity(field.labels[:, 0], truth[:, 0]),
+        timings=dict(field.timings),
+        seconds=0.0,
+        queries=tuple(results),
+        files=(),
+    )
+    json_path, markdown_path = out / "report.json", out / "report.md"
+    files += [json_path, markdown_path]
+    report = replace(report, files=tuple(files), seconds=time.perf_counter() - started)
+    with atomic_output(json_path, "w") as handle:
+        json.dump(report.to_json(), handle, indent=2)
+        handle.write("\n")
+    with atomic_output(markdown_path, "w") as handle:
+        handle.write(report.markdown())
+    return report
