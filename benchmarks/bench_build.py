@@ -78,9 +78,7 @@ def table(runs: list[dict]) -> str:
             lines.append(
                 f"| {run['preset']} | {run['seed']} | {variant} | {r['seconds']:.1f} "
                 f"| {r['stages']['lift']:.1f} | {r['peak_gib']:.2f} | {counts} "
-                f"| {r['purity']:.3f} | "
-                + " | ".join(f"{m:.3f}" for m in r["miou"])
-                + " |"
+                f"| {r['purity']:.3f} | " + " | ".join(f"{m:.3f}" for m in r["miou"]) + " |"
             )
     ours = [run["variants"]["ours"]["miou"] for run in runs]
     if ours:
