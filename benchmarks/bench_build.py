@@ -15,14 +15,9 @@ table.
 
 from __future__ import annotations
 
-import argparse
-import json
-import subprocess
-import sys
-
 import numpy as np
 import torch
-from bench_partition import HashEncoder, measured
+from bench_partition import HashEncoder, measured, runs_in_subprocesses
 
 from thgs.eval import matched_miou, purity
 from thgs.pipeline import FieldConfig, build_field
@@ -88,22 +83,7 @@ def table(runs: list[dict]) -> str:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--presets", nargs="*", default=["synth-small", "synth-medium"])
-    parser.add_argument("--seeds", type=int, nargs="*", default=[0])
-    parser.add_argument("--one", action="store_true", help=argparse.SUPPRESS)
-    args = parser.parse_args()
-    if args.one:
-        print(json.dumps(run_one(args.presets[0], args.seeds[0])))
-        return
-    runs = []
-    for name in args.presets:
-        for seed in args.seeds:
-            command = [sys.executable, __file__, "--one", "--presets", name, "--seeds", str(seed)]
-            result = subprocess.run(command, capture_output=True, text=True, check=True)
-            print(result.stdout.strip(), flush=True)
-            runs.append(json.loads(result.stdout))
-    print(table(runs))
+    print(table(runs_in_subprocesses(__doc__, __file__, run_one)))
 
 
 if __name__ == "__main__":

@@ -132,20 +132,30 @@ def run_one(name: str, seed: int) -> dict:
     }
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def runs_in_subprocesses(doc: str, script: str, run_one: Callable[[str, int], dict]) -> list[dict]:
+    """Parse ``--presets`` and ``--seeds``, run every (preset, seed) in its own process and return
+    the runs, printing each as a JSON line. The child process (``script --one``) prints
+    ``run_one(preset, seed)`` as JSON and exits."""
+    parser = argparse.ArgumentParser(description=doc.splitlines()[0])
     parser.add_argument("--presets", nargs="*", default=["synth-small", "synth-medium"])
     parser.add_argument("--seeds", type=int, nargs="*", default=[0])
     parser.add_argument("--one", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.one:
         print(json.dumps(run_one(args.presets[0], args.seeds[0])))
-        return
+        raise SystemExit(0)
+    runs = []
     for name in args.presets:
         for seed in args.seeds:
-            command = [sys.executable, __file__, "--one", "--presets", name, "--seeds", str(seed)]
+            command = [sys.executable, script, "--one", "--presets", name, "--seeds", str(seed)]
             result = subprocess.run(command, capture_output=True, text=True, check=True)
             print(result.stdout.strip(), flush=True)
+            runs.append(json.loads(result.stdout))
+    return runs
+
+
+def main() -> None:
+    runs_in_subprocesses(__doc__, __file__, run_one)
 
 
 if __name__ == "__main__":

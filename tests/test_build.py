@@ -3,16 +3,12 @@
 from __future__ import annotations
 
 import json
-import math
 from dataclasses import replace
 
 import numpy as np
 import pytest
-import torch
 
-from conftest import look_at
-from test_pipeline import Posed, oracle_views
-from thgs import Cameras, Gaussians
+from test_pipeline import Posed, flat_square, oracle_views, ring_cameras
 from thgs.errors import InputError
 from thgs.eval import matched_miou
 from thgs.eval.ground_truth import Hierarchy
@@ -28,22 +24,11 @@ def tiled_scene(side: int = 96, views: int = 8) -> tuple[Posed, Hierarchy]:
     """A flat grey square of side² surfels holding 2 objects (left / right of a wavy line), each
     of 2 parts (split across y), each of 2 sub-parts (split across y again): 8 sub-parts that
     geometry and colour cannot tell apart, seen whole from every camera."""
-    xs = (np.arange(side) + 0.5) / side - 0.5
-    x, y = (a.ravel() for a in np.meshgrid(xs, xs, indexing="ij"))
-    n = x.size
-    jitter = np.random.default_rng(0).normal(scale=1e-3, size=(n, 3))
-    means = np.stack([x, y, np.zeros(n)], axis=1) + jitter
+    gaussians, x, y = flat_square(side)
     obj = (x > 0.08 * np.sin(5 * y)).astype(np.int32)
     part = 2 * obj + (y > 0.04 * np.sin(7 * x)).astype(np.int32)
     cut = np.where(part % 2 == 1, 0.25, -0.25)
     subpart = 2 * part + (y > cut + 0.03 * np.cos(6 * x)).astype(np.int32)
-    gaussians = Gaussians(
-        means=torch.tensor(means, dtype=torch.float32),
-        quats=torch.tensor([[1.0, 0.0, 0.0, 0.0]]).repeat(n, 1),
-        scales=torch.full((n, 2), math.log(0.8 / side)),
-        opacities=torch.full((n,), 3.0),
-        sh=torch.zeros(n, 1, 3),
-    )
     hierarchy = Hierarchy(
         labels=np.stack([subpart, part, obj], axis=1),
         names=(
@@ -54,16 +39,7 @@ def tiled_scene(side: int = 96, views: int = 8) -> tuple[Posed, Hierarchy]:
         subpart_parent=np.arange(8, dtype=np.int32) // 2,
         part_parent=np.arange(4, dtype=np.int32) // 2,
     ).check()
-    angles = 2 * math.pi * np.arange(views) / views
-    eyes = [np.array([0.5 * math.cos(a), 0.5 * math.sin(a), 1.2]) for a in angles]
-    cameras = Cameras(
-        viewmats=torch.tensor(np.stack([look_at(eye, np.zeros(3)) for eye in eyes])),
-        Ks=torch.tensor([[[190.0, 0, 80], [0, 190, 60], [0, 0, 1]]] * views, dtype=torch.float64),
-        widths=torch.full((views,), 160),
-        heights=torch.full((views,), 120),
-        names=tuple(f"view_{i}" for i in range(views)),
-    )
-    return Posed(gaussians, cameras), hierarchy
+    return Posed(gaussians, ring_cameras(views, 0.5, 190.0)), hierarchy
 
 
 @pytest.fixture(scope="module")

@@ -30,15 +30,14 @@ class Posed:
     cameras: Cameras | None
 
 
-def plane_scene(side: int = 80, views: int = 8) -> tuple[Posed, Hierarchy]:
-    """A flat, uniformly grey square of side² surfels split into four regions along a wavy line
-    and a straight one: geometry and colour say nothing about where the regions meet."""
+def flat_square(side: int) -> tuple[Gaussians, np.ndarray, np.ndarray]:
+    """side² grey, opaque surfels filling the unit square at z = 0 (centres jittered by 1e-3),
+    and their x and y."""
     xs = (np.arange(side) + 0.5) / side - 0.5
     x, y = (a.ravel() for a in np.meshgrid(xs, xs, indexing="ij"))
     n = x.size
     jitter = np.random.default_rng(0).normal(scale=1e-3, size=(n, 3))
     means = np.stack([x, y, np.zeros(n)], axis=1) + jitter
-    region = (x > 0.1 * np.sin(6 * y)).astype(np.int32) + 2 * (y > 0.05).astype(np.int32)
     gaussians = Gaussians(
         means=torch.tensor(means, dtype=torch.float32),
         quats=torch.tensor([[1.0, 0.0, 0.0, 0.0]]).repeat(n, 1),
@@ -46,23 +45,35 @@ def plane_scene(side: int = 80, views: int = 8) -> tuple[Posed, Hierarchy]:
         opacities=torch.full((n,), 3.0),
         sh=torch.zeros(n, 1, 3),
     )
-    names = tuple(f"region {i}" for i in range(4))
-    hierarchy = Hierarchy(
-        labels=np.stack([region, region, np.zeros(n, np.int32)], axis=1),
-        names=(names, names, ("plane",)),
-        subpart_parent=np.arange(4, dtype=np.int32),
-        part_parent=np.zeros(4, dtype=np.int32),
-    ).check()
+    return gaussians, x, y
+
+
+def ring_cameras(views: int, radius: float, focal: float) -> Cameras:
+    """``views`` 160×120 cameras on a circle of ``radius`` at height 1.2, looking at the origin."""
     angles = 2 * math.pi * np.arange(views) / views
-    eyes = [np.array([0.6 * math.cos(a), 0.6 * math.sin(a), 1.2]) for a in angles]
-    cameras = Cameras(
+    eyes = [np.array([radius * math.cos(a), radius * math.sin(a), 1.2]) for a in angles]
+    return Cameras(
         viewmats=torch.tensor(np.stack([look_at(eye, np.zeros(3)) for eye in eyes])),
-        Ks=torch.tensor([[[200.0, 0, 80], [0, 200, 60], [0, 0, 1]]] * views, dtype=torch.float64),
+        Ks=torch.tensor([[[focal, 0, 80], [0, focal, 60], [0, 0, 1]]] * views, dtype=torch.float64),
         widths=torch.full((views,), 160),
         heights=torch.full((views,), 120),
         names=tuple(f"view_{i}" for i in range(views)),
     )
-    return Posed(gaussians, cameras), hierarchy
+
+
+def plane_scene(side: int = 80, views: int = 8) -> tuple[Posed, Hierarchy]:
+    """A flat, uniformly grey square of side² surfels split into four regions along a wavy line
+    and a straight one: geometry and colour say nothing about where the regions meet."""
+    gaussians, x, y = flat_square(side)
+    region = (x > 0.1 * np.sin(6 * y)).astype(np.int32) + 2 * (y > 0.05).astype(np.int32)
+    names = tuple(f"region {i}" for i in range(4))
+    hierarchy = Hierarchy(
+        labels=np.stack([region, region, np.zeros(x.size, np.int32)], axis=1),
+        names=(names, names, ("plane",)),
+        subpart_parent=np.arange(4, dtype=np.int32),
+        part_parent=np.zeros(4, dtype=np.int32),
+    ).check()
+    return Posed(gaussians, ring_cameras(views, 0.6, 200.0)), hierarchy
 
 
 def oracle_views(

@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
+import math
 import sys
 import time
 from pathlib import Path
@@ -232,11 +233,11 @@ def _stage_progress():
 
 
 def _counts_table(title: str, counts, timings: dict[str, float]) -> Table:
+    from thgs.field import FIELD_LEVELS
+
     table = Table(title=title, show_header=False, title_justify="left")
     table.add_column(style="bold")
     table.add_column()
-    from thgs.field import FIELD_LEVELS
-
     table.add_row(
         "regions", ", ".join(f"{name} {count:,}" for name, count in zip(FIELD_LEVELS, counts))
     )
@@ -388,7 +389,7 @@ def demo(
     for column in ("query", "Gaussians", "3-D IoU", "picture"):
         queries.add_column(column)
     for result in report.queries:
-        iou = "–" if result.iou != result.iou else f"{result.iou:.3f}"
+        iou = "–" if math.isnan(result.iou) else f"{result.iou:.3f}"
         queries.add_row(result.text, f"{result.selected:,}", iou, result.image.name)
     _stdout.print(queries)
     _stdout.print(

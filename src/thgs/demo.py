@@ -21,7 +21,7 @@ import os
 import re
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -350,6 +350,7 @@ def run_demo(
         )
         logger.info("query %r: %d Gaussians, IoU %.3f", text, selection.gaussians.sum(), iou)
 
+    json_path, markdown_path = out / "report.json", out / "report.md"
     report = DemoReport(
         dataset=folder,
         generated=generated,
@@ -361,13 +362,10 @@ def run_demo(
         miou=miou,
         superpoint_purity=purity(field.labels[:, 0], truth[:, 0]),
         timings=dict(field.timings),
-        seconds=0.0,
+        seconds=time.perf_counter() - started,
         queries=tuple(results),
-        files=(),
+        files=(*files, json_path, markdown_path),
     )
-    json_path, markdown_path = out / "report.json", out / "report.md"
-    files += [json_path, markdown_path]
-    report = replace(report, files=tuple(files), seconds=time.perf_counter() - started)
     with atomic_output(json_path, "w") as handle:
         json.dump(report.to_json(), handle, indent=2)
         handle.write("\n")

@@ -9,6 +9,7 @@ features, and returns the :class:`thgs.field.SemanticField`. Each stage keeps it
 
 from __future__ import annotations
 
+import json
 import logging
 import time
 from collections.abc import Callable, Sequence
@@ -314,7 +315,7 @@ class FieldConfig:
 
     def to_json(self) -> dict[str, Any]:
         """The config as JSON values (tuples become lists), as stored in the field file."""
-        return _json_values(asdict(self))
+        return json.loads(json.dumps(asdict(self)))
 
 
 PRESETS: dict[str, Callable[[], FieldConfig]] = {
@@ -322,16 +323,6 @@ PRESETS: dict[str, Callable[[], FieldConfig]] = {
     "3dovs": FieldConfig.three_dovs,
 }
 """The named presets of ``thgs build --preset``."""
-
-
-def _json_values(value: Any) -> Any:
-    if isinstance(value, dict):
-        return {str(key): _json_values(item) for key, item in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_json_values(item) for item in value]
-    if isinstance(value, np.generic):
-        return value.item()
-    return value
 
 
 def build_field(

@@ -9,6 +9,17 @@ from thgs.errors import InputError
 __all__ = ["best_iou", "matched_miou", "purity"]
 
 
+def _checked(name: str, labels: np.ndarray, truth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``labels`` and ``truth`` as arrays, after checking they are [N] ids ≥ −1."""
+    labels = np.asarray(labels)
+    truth = np.asarray(truth)
+    if labels.shape != truth.shape or labels.ndim != 1:
+        raise InputError(name, f"labels {labels.shape} and truth {truth.shape} must be [N]")
+    if (labels.size and labels.min() < -1) or (truth.size and truth.min() < -1):
+        raise InputError(name, "ids must be ≥ −1")
+    return labels, truth
+
+
 def purity(labels: np.ndarray, truth: np.ndarray) -> float:
     """The share of Gaussians whose region's majority ground-truth node is their own.
 
@@ -29,12 +40,7 @@ def purity(labels: np.ndarray, truth: np.ndarray) -> float:
     Raises:
         InputError: shapes differ or ids below −1.
     """
-    labels = np.asarray(labels)
-    truth = np.asarray(truth)
-    if labels.shape != truth.shape or labels.ndim != 1:
-        raise InputError("purity", f"labels {labels.shape} and truth {truth.shape} must be [N]")
-    if (labels.size and labels.min() < -1) or (truth.size and truth.min() < -1):
-        raise InputError("purity", "ids must be ≥ −1")
+    labels, truth = _checked("purity", labels, truth)
     keep = truth >= 0
     if not keep.any():
         return 1.0
@@ -66,12 +72,7 @@ def best_iou(labels: np.ndarray, truth: np.ndarray) -> np.ndarray:
     Raises:
         InputError: shapes differ or ids below −1.
     """
-    labels = np.asarray(labels)
-    truth = np.asarray(truth)
-    if labels.shape != truth.shape or labels.ndim != 1:
-        raise InputError("best_iou", f"labels {labels.shape} and truth {truth.shape} must be [N]")
-    if (labels.size and labels.min() < -1) or (truth.size and truth.min() < -1):
-        raise InputError("best_iou", "ids must be ≥ −1")
+    labels, truth = _checked("best_iou", labels, truth)
     nodes = int(truth.max()) + 1 if truth.size else 0
     keep = truth >= 0
     regions, truth = labels[keep].astype(np.int64), truth[keep].astype(np.int64)
