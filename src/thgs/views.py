@@ -1,0 +1,185 @@
+"""From regions to pixels and back: 2D masks, relevancy maps and picking (design §4.8).
+
+- :func:`selection_opacity` renders a selection's accumulated opacity: every Gaussian carries 1
+  if selected and 0 if not, and composites with the usual occlusion, so a selected surface behind
+  an unselected one stays hidden. :func:`selection_masks` thresholds it at 0.5 (the paper's 2D
+  mask).
+- :func:`relevancy_map` renders each Gaussian's region relevancy the same way (LangSplat-style
+  per-pixel relevancy, 0 where no Gaussian is).
+- :func:`pick` is the paper's interactive segmentation: a pixel → the Gaussian of largest blending
+  weight under it → its region at every level. ``SemanticField.parent`` and ``children`` move
+  between levels from there.
+
+Pixels are ``(x, y)`` = (column, row) from the top-left corner of the image; pixel (x, y) covers
+``[x, x + 1) × [y, y + 1)``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from thgs.errors import InputError
+from thgs.field import SemanticField
+from thgs.render import RasterConfig, render
+from thgs.scene import Cameras, Gaussians
+
+__all__ = ["Pick", "pick", "relevancy_map", "selection_masks", "selection_opacity"]
+
+
+def _columns(values: np.ndarray, n: int, name: str) -> tuple[np.ndarray, bool]:
+    values = np.asarray(values)
+    single = values.ndim == 1
+    values = values.reshape(values.shape[0], -1) if values.ndim else values
+    if values.ndim != 2 or values.shape[0] != n:
+        raise InputError(name, f"must be [N] or [N, Q] with N = {n}, got {list(np.shape(values))}")
+    return values, single
+
+
+def _render_columns(
+    gaussians: Gaussians, camera: Cameras, values: np.ndarray, config: RasterConfig
+) -> np.ndarray:
+    features = torch.from_numpy(np.ascontiguousarray(values, dtype=np.float64))
+    out = render(gaussians, camera, features.to(gaussians.device), config=config)
+    return out.image.detach().cpu().numpy()
+
+
+def selection_opacity(
+    gaussians: Gaussians,
+    camera: Cameras,
+    selected: np.ndarray,
+    *,
+    config: RasterConfig = RasterConfig(),
+) -> np.ndarray:
+    """Accumulated opacity of the selected Gaussians in one view.
+
+    Args:
+        gaussians: the N Gaussians the selection indexes.
+        camera: one camera (``cameras.select([i])``).
+        selected: [N] bool, or [N, Q] bool for Q selections rendered in one pass.
+        config: rasterization settings.
+
+    Returns:
+        [H, W] (or [H, W, Q]) float64 in [0, 1]: ``Σ_k w_k(x) · selected_k``.
+    """
+    columns, single = _columns(selected, len(gaussians), "selected")
+    image = _render_columns(gaussians, camera, columns.astype(np.float64), config)
+    return image[..., 0] if single else image
+
+
+def selection_masks(
+    gaussians: Gaussians,
+    camera: Cameras,
+    selected: np.ndarray,
+    *,
+    threshold: float = 0.5,
+    config: RasterConfig = RasterConfig(),
+) -> np.ndarray:
+    """The selection's 2D mask in one view: :func:`selection_opacity` > ``threshold``.
+
+    Returns:
+        [H, W] (or [H, W, Q]) bool.
+    """
+    if not 0.0 <= threshold < 1.0:
+        raise InputError("threshold", f"must be in [0, 1), got {threshold}")
+    return selection_opacity(gaussians, camera, selected, config=config) > threshold
+
+
+def relevancy_map(
+    gaussians: Gaussians,
+    camera: Cameras,
+    relevancy: np.ndarray,
+    *,
+    config: RasterConfig = RasterConfig(),
+) -> np.ndarray:
+    """Per-pixel relevancy in one view: ``Σ_k w_k(x) · rel_k``.
+
+    Args:
+        relevancy: [N] (or [N, Q]) per-Gaussian relevancy, e.g.
+            :meth:`thgs.query.FieldQuery.gaussian_relevancy`.
+
+    Returns:
+        [H, W] (or [H, W, Q]) float64; 0 where no Gaussian is, and lowered where the scene is
+        not opaque.
+    """
+    columns, single = _columns(relevancy, len(gaussians), "relevancy")
+    if not np.isfinite(columns).all():
+        raise InputError("relevancy", "has NaN or infinite values")
+    image = _render_columns(gaussians, camera, columns, config)
+    return image[..., 0] if single else image
+
+
+@dataclass(frozen=True)
+class Pick:
+    """What lies under one pixel.
+
+    Attributes:
+        view: the camera's image stem.
+        pixel: ``(x, y)``, column and row.
+        gaussian: index of the Gaussian with the largest blending weight at that pixel.
+        regions: its region id at levels 0..3 (superpoint, sub-part, part, object).
+    """
+
+    view: str
+    pixel: tuple[int, int]
+    gaussian: int
+    regions: tuple[int, int, int, int]
+
+    def region(self, level: int) -> int:
+        """The picked region at ``level`` (0..3)."""
+        if level not in (0, 1, 2, 3):
+            raise InputError("Pick.region", f"level must be in 0..3, got {level}")
+        return self.regions[level]
+
+
+def _pixel_camera(camera: Cameras, x: int, y: int) -> Cameras:
+    """A 1×1 camera that sees exactly pixel (x, y) of ``camera``: the principal point moves by
+    (−x, −y), so every ray, and hence every blending weight, is the same."""
+    Ks = camera.Ks.clone()
+    Ks[0, 0, 2] -= x
+    Ks[0, 1, 2] -= y
+    ones = torch.ones(1, dtype=camera.widths.dtype)
+    return Cameras(camera.viewmats, Ks, ones, ones.clone(), camera.names)
+
+
+def pick(
+    field: SemanticField,
+    gaussians: Gaussians,
+    camera: Cameras,
+    pixel: tuple[int, int],
+    *,
+    config: RasterConfig = RasterConfig(),
+) -> Pick | None:
+    """The Gaussian and regions under ``pixel`` of one view; None where no Gaussian is.
+
+    Only that pixel is rasterized (a 1×1 camera through it), so a pick costs a projection of the
+    Gaussians, not a whole image.
+
+    Args:
+        field: the semantic field of ``gaussians``.
+        gaussians: its N Gaussians.
+        camera: one camera (``cameras.select([i])``).
+        pixel: ``(x, y)`` integer pixel, inside the image.
+
+    Raises:
+        InputError: a field of another size, or a pixel outside the image.
+    """
+    if len(field) != len(gaussians):
+        raise InputError(
+            "pick", f"the field has {len(field)} Gaussians, the scene {len(gaussians)}"
+        )
+    if len(camera) != 1:
+        raise InputError("pick", f"expected one camera, got {len(camera)}")
+    x, y = (int(v) for v in pixel)
+    width, height = int(camera.widths[0]), int(camera.heights[0])
+    if not (0 <= x < width and 0 <= y < height):
+        raise InputError(camera.stems[0], f"pixel ({x}, {y}) is outside the {width}×{height} image")
+    zeros = torch.zeros(len(gaussians), 1, dtype=torch.float64, device=gaussians.device)
+    out = render(gaussians, _pixel_camera(camera, x, y), zeros, config=config)
+    gaussian = int(out.max_id[0, 0])
+    if gaussian < 0:
+        return None
+    regions = tuple(int(v) for v in field.labels[gaussian])
+    return Pick(camera.stems[0], (x, y), gaussian, regions)  # type: ignore[arg-type]

@@ -1,0 +1,136 @@
+"""Text encoders: CLIP through transformers with a randomly initialised small model and a tiny
+tokenizer built here, the offline MiniLM model, and the space checks."""
+
+from __future__ import annotations
+
+import json
+import string
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from thgs.errors import ThgsError
+from thgs.text import (
+    MINILM_SPACE,
+    CLIPTextEncoder,
+    MiniLMEncoder,
+    SpaceMismatchError,
+    check_space,
+    load_text_encoder,
+)
+
+transformers = pytest.importorskip("transformers")
+
+SPACE = "test/tiny-clip"
+
+
+def _tiny_clip(folder: Path) -> Path:
+    """A randomly initialised CLIP (32-wide, 2 text layers, 16-D projection) and a character-level
+    BPE tokenizer, saved in Hugging Face format like a downloaded model."""
+    letters = list(string.ascii_lowercase)
+    vocab = {c: i for i, c in enumerate(letters)}
+    vocab |= {c + "</w>": len(letters) + i for i, c in enumerate(letters)}
+    vocab |= {"<|startoftext|>": len(vocab), "<|endoftext|>": len(vocab) + 1}
+    tokenizer = transformers.CLIPTokenizer(vocab=vocab, merges=[])
+    config = transformers.CLIPConfig(
+        text_config={
+            "vocab_size": len(vocab),
+            "hidden_size": 32,
+            "intermediate_size": 64,
+            "num_hidden_layers": 2,
+            "num_attention_heads": 2,
+            "max_position_embeddings": 77,
+            "bos_token_id": vocab["<|startoftext|>"],
+            "eos_token_id": vocab["<|endoftext|>"],
+            "pad_token_id": vocab["<|endoftext|>"],
+        },
+        vision_config={
+            "hidden_size": 32,
+            "intermediate_size": 64,
+            "num_hidden_layers": 1,
+            "num_attention_heads": 2,
+            "image_size": 32,
+            "patch_size": 16,
+        },
+        projection_dim=16,
+    )
+    torch.manual_seed(0)
+    model = transformers.CLIPModel(config).eval()
+    model.save_pretrained(folder)
+    tokenizer.save_pretrained(folder)
+    return folder
+
+
+@pytest.fixture(scope="module")
+def tiny_clip(tmp_path_factory) -> Path:
+    return _tiny_clip(tmp_path_factory.mktemp("tiny-clip"))
+
+
+def test_clip_encoder_gives_the_models_normalized_text_features(tiny_clip):
+    encoder = load_text_encoder(SPACE, model_path=tiny_clip)
+    assert isinstance(encoder, CLIPTextEncoder)
+    assert (encoder.space, encoder.dim) == (SPACE, 16)
+    texts = ["a mug", "teddy bear", "the mugs handle"]
+    embeddings = encoder.encode(texts)
+    assert embeddings.shape == (3, 16) and embeddings.dtype == np.float32
+    np.testing.assert_allclose(np.linalg.norm(embeddings, axis=1), 1.0, rtol=1e-6)
+
+    # by hand: tokenize one phrase, run the text tower and the projection, normalize
+    model = transformers.CLIPModel.from_pretrained(tiny_clip).eval()
+    tokenizer = transformers.AutoTokenizer.from_pretrained(tiny_clip)
+    tokens = tokenizer(["teddy bear"], return_tensors="pt")
+    ids = tokens["input_ids"][0]
+    assert ids[0] == tokenizer.bos_token_id and ids[-1] == tokenizer.eos_token_id
+    assert len(ids) == len("teddybear") + 2  # one token per letter, start and end
+    with torch.no_grad():
+        # CLIP's text feature: the final (layer-normed) state of the end token, projected
+        hidden = model.text_model(**tokens).last_hidden_state[0, -1]
+        reference = model.text_projection(hidden).numpy()
+    np.testing.assert_allclose(
+        embeddings[1], reference / np.linalg.norm(reference), rtol=1e-5, atol=1e-6
+    )
+
+
+def test_clip_embeddings_do_not_depend_on_the_batch(tiny_clip):
+    together = CLIPTextEncoder(SPACE, tiny_clip).encode(["a mug", "a much longer phrase here"])
+    alone = CLIPTextEncoder(SPACE, tiny_clip).encode(["a mug"])
+    np.testing.assert_allclose(together[0], alone[0], rtol=1e-5, atol=1e-6)
+    encoder = CLIPTextEncoder(SPACE, tiny_clip)
+    first = encoder.encode(["a mug", "a mug"])
+    np.testing.assert_array_equal(first[0], first[1])
+    assert encoder.encode([]).shape == (0, 16)
+
+
+def test_missing_clip_weights_say_what_to_download(tmp_path, monkeypatch):
+    monkeypatch.setenv("HF_HOME", str(tmp_path / "hf"))
+    monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+    with pytest.raises(ThgsError, match="hf download laion/CLIP-ViT-B-16-laion2B-s34B-b88K"):
+        load_text_encoder("laion/CLIP-ViT-B-16-laion2B-s34B-b88K")
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(ThgsError, match=r"no config\.json"):
+        CLIPTextEncoder(SPACE, empty)
+    (empty / "config.json").write_text(json.dumps({"model_type": "clip"}))
+    with pytest.raises(ThgsError, match=f"CLIP weights for '{SPACE}' not found in {empty}"):
+        CLIPTextEncoder(SPACE, empty)
+
+
+def test_minilm_encoder_is_offline_and_unit_length():
+    pytest.importorskip("sentence_transformers")
+    encoder = load_text_encoder(MINILM_SPACE)
+    assert isinstance(encoder, MiniLMEncoder) and encoder.dim == 384
+    rows = encoder.encode(["mug", "teddy bear", "mug"])
+    np.testing.assert_allclose(np.linalg.norm(rows, axis=1), 1.0, rtol=1e-5)
+    np.testing.assert_array_equal(rows[0], rows[2])
+    # related words are closer than unrelated ones
+    cup, giraffe = encoder.encode(["cup", "giraffe"])
+    assert rows[0] @ cup > rows[0] @ giraffe
+
+
+def test_space_check_names_both_spaces(tiny_clip):
+    encoder = CLIPTextEncoder(SPACE, tiny_clip)
+    check_space(SPACE, encoder, "scene.thgs")
+    with pytest.raises(SpaceMismatchError, match=r"scene.thgs: .*'other/space'.*'test/tiny-clip'"):
+        check_space("other/space", encoder, "scene.thgs")
