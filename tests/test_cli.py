@@ -173,3 +173,161 @@ def test_console_script_demo(tmp_path):
     assert result.returncode == 0, result.stderr
     assert "text queries" in result.stdout
     assert (tmp_path / "cache" / "synth-small-seed0-3000g-6v" / "synthetic.json").is_file()
+
+
+@pytest.fixture(scope="module")
+def small_field(small_dataset, tmp_path_factory):
+    """The small dataset's field, built by `thgs build` (which records where the scene is)."""
+    out = tmp_path_factory.mktemp("field") / "scene.thgs"
+    try:
+        entrypoint(["build", str(small_dataset), "-o", str(out)])
+    except SystemExit as exc:  # pragma: no cover - the command returns normally
+        assert not exc.code
+    return out
+
+
+def test_query_prints_regions_and_writes_masks(small_dataset, small_field, tmp_path, capsys):
+    import numpy as np
+    from PIL import Image
+
+    from thgs import load_scene
+    from thgs.field import load_field
+    from thgs.query import FieldQuery
+    from thgs.text import load_text_encoder
+    from thgs.views import relevancy_map, selection_masks
+
+    scene = load_scene(small_dataset)
+    views = list(scene.cameras.stems[:2])
+    out = tmp_path / "q"
+    argv = ["query", str(small_field), "mug", "teddy bear", "--views", *views, "-o", str(out)]
+    code, stdout, err = run([*argv, "--relevancy"], capsys)
+    assert code == 0, err
+    assert "mug" in stdout and "teddy bear" in stdout
+    results = json.loads((out / "results.json").read_text())
+    assert [q["text"] for q in results["queries"]] == ["mug", "teddy bear"]
+    assert results["config"]["mode"] == "reference"
+    field = load_field(small_field)
+    fq = FieldQuery(field, load_text_encoder(field.space))
+    for entry, selection in zip(results["queries"], fq.select(["mug", "teddy bear"])):
+        assert [(r["level"], r["region"]) for r in entry["regions"]] == [
+            (k, r) for k, r, _ in selection.regions
+        ]
+        assert entry["gaussians"] == int(selection.gaussians.sum())
+        for i, view in enumerate(views):
+            camera = scene.cameras.select([i])
+            written = np.asarray(Image.open(out / Path(entry["files"][0]).parent / f"{view}.png"))
+            np.testing.assert_array_equal(
+                written > 127, selection_masks(scene.gaussians, camera, selection.gaussians)
+            )
+            relevancy = np.asarray(
+                Image.open(out / Path(entry["files"][0]).parent / f"{view}-relevancy-object.png")
+            )
+            expected = relevancy_map(
+                scene.gaussians, camera, fq.gaussian_relevancy(selection.text, 3)
+            )
+            assert np.abs(relevancy / 255.0 - expected).max() <= 0.5 / 255 + 1e-9
+    # threshold mode: a text about nothing in the scene selects nothing
+    code, stdout, err = run(
+        ["query", str(small_field), "xqzv blorf", "--mode", "threshold"], capsys
+    )
+    assert code == 0, err
+    assert "nothing relevant" in stdout
+
+
+def test_pick_reports_the_region_chain(small_dataset, small_field, tmp_path, capsys):
+    import numpy as np
+    import torch
+
+    from thgs import load_scene
+    from thgs.field import load_field
+    from thgs.render import render
+    from thgs.scene import read_ply
+
+    scene = load_scene(small_dataset)
+    camera = scene.cameras.select([0])
+    zeros = torch.zeros(len(scene.gaussians), 1, dtype=torch.float64)
+    ids = render(scene.gaussians, camera, zeros).max_id.numpy()
+    rows, cols = np.nonzero(ids >= 0)
+    y, x = int(rows[rows.size // 2]), int(cols[rows.size // 2])
+    out = tmp_path / "pick"
+    argv = ["pick", str(small_field), "--view", camera.stems[0], "--pixel", str(x), str(y)]
+    code, stdout, err = run([*argv, "--level", "2", "-o", str(out)], capsys)
+    assert code == 0, err
+    field = load_field(small_field)
+    picked = json.loads((out / "pick.json").read_text())
+    assert picked["gaussian"] == ids[y, x]
+    assert list(picked["regions"].values()) == field.labels[ids[y, x]].tolist()
+    region = picked["region"]
+    assert region == field.labels[ids[y, x], 2] and picked["parent"] == field.parent(2, region)
+    assert picked["children"] == field.children(2, region).tolist()
+    assert (
+        len(read_ply(out / f"part-{region}.ply")) == picked["gaussians"] == field.sizes(2)[region]
+    )
+    assert "← picked" in stdout
+    code, _, err = run([*argv[:3], "nope", "--pixel", "0", "0"], capsys)
+    assert code == 2 and "no view named 'nope'" in err.replace("\n", "")
+    code, _, err = run([*argv[:4], "--pixel", "100000", "0"], capsys)
+    assert code == 2 and "outside" in err
+
+
+def test_export_selection_regions_and_labels(small_dataset, small_field, tmp_path, capsys):
+    import numpy as np
+
+    from thgs import load_scene
+    from thgs.field import load_field
+    from thgs.scene import read_ply
+
+    out = tmp_path / "export"
+    argv = ["export", str(small_field), "-o", str(out), "--query", "mug", "--mode", "level"]
+    code, stdout, err = run([*argv, "--color-level", "3", "--labels"], capsys)
+    assert "mug" in stdout and "wrote 5 files" in stdout
+    assert code == 0, err
+    field = load_field(small_field)
+    scene = load_scene(small_dataset)
+    summary = json.loads((out / "selections.json").read_text())
+    (entry,) = summary["queries"]
+    level, region = entry["regions"][0]["level"], entry["regions"][0]["region"]
+    mug = read_ply(out / "mug.ply")
+    members = field.labels[:, level] == region
+    assert len(mug) == entry["gaussians"] == members.sum()
+    np.testing.assert_array_equal(mug.means.numpy(), scene.gaussians.means[members].numpy())
+    assert len(read_ply(out / "regions-object.ply")) == len(field)
+    np.testing.assert_array_equal(np.load(out / "labels.npy"), field.labels)
+    assert json.loads((out / "labels.json").read_text())["gaussians"] == len(field)
+    code, _, err = run(["export", str(small_field), "-o", str(out)], capsys)
+    assert code == 2 and "nothing to export" in err
+
+
+def test_field_without_or_with_another_scene_is_refused(small_field, tmp_path, capsys):
+    from dataclasses import replace
+
+    from thgs.field import load_field, save_field
+
+    field = load_field(small_field)
+    bare = tmp_path / "bare.thgs"
+    save_field(bare, replace(field, config={k: v for k, v in field.config.items() if k != "scene"}))
+    code, _, err = run(["pick", str(bare), "--view", "x", "--pixel", "0", "0"], capsys)
+    assert code == 2 and "records no scene" in err and "--scene" in err
+    other = tmp_path / "other"
+    code, _, err = run(
+        ["synth", "synth-small", str(other), "--gaussians", "4000", "--views", "8", "--seed", "1"],
+        capsys,
+    )
+    assert code == 0, err
+    code, _, err = run(
+        [
+            "query",
+            str(small_field),
+            "mug",
+            "--views",
+            "all",
+            "-o",
+            str(tmp_path / "q"),
+            "--scene",
+            str(other),
+        ],
+        capsys,
+    )
+    assert code == 2 and "fingerprints differ" in err.replace("\n", "")
+    code, _, err = run(["query", str(small_field), "mug", "--views", "all"], capsys)
+    assert code == 2 and "--out" in err

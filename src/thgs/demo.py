@@ -18,7 +18,6 @@ from __future__ import annotations
 import json
 import logging
 import os
-import re
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -32,10 +31,12 @@ from thgs._atomic import atomic_output
 from thgs.errors import InputError
 from thgs.eval import matched_miou, purity
 from thgs.eval.ground_truth import Hierarchy, read_hierarchy
+from thgs.export import slug
 from thgs.field import FIELD_LEVELS, SemanticField, save_field
+from thgs.field_scene import record_scene
 from thgs.guidance import load_guidance, read_embedding_space
 from thgs.pipeline import FieldConfig, Progress, build_field
-from thgs.query import CANONICAL_PHRASES, select_reference
+from thgs.query import FieldQuery
 from thgs.render import render
 from thgs.scene import Scene, load_scene
 from thgs.synthetic import (
@@ -47,6 +48,7 @@ from thgs.synthetic import (
     write_dataset,
 )
 from thgs.text import MINILM_SPACE, TextEncoder, load_text_encoder
+from thgs.views import selection_masks
 
 __all__ = ["DemoReport", "QueryResult", "default_cache", "demo_queries", "run_demo"]
 
@@ -225,10 +227,6 @@ def _dataset(
     return folder, True
 
 
-def _slug(text: str) -> str:
-    return re.sub(r"[^a-z0-9]+", "-", text.lower()).strip("-") or "query"
-
-
 def _palette(count: int, seed: int) -> np.ndarray:
     return np.random.default_rng(seed).uniform(0.15, 1.0, size=(count, 3))
 
@@ -305,6 +303,7 @@ def run_demo(
         raise InputError(features_dir, f"features are in {space!r}, expected {encoder.space!r}")
     guidance = load_guidance(features_dir, scene.cameras)
     field = build_field(scene, guidance, FieldConfig.lerf(), space=space, progress=progress)
+    field = record_scene(field, folder)
     out.mkdir(parents=True, exist_ok=True)
     field_path = out / "field.thgs"
     save_field(field_path, field)
@@ -320,22 +319,19 @@ def run_demo(
     files.append(levels_path)
 
     texts = tuple(queries) if queries is not None else demo_queries(hierarchy)
-    canonical = encoder.encode(list(CANONICAL_PHRASES))
-    embeddings = encoder.encode(list(texts))
     names = [hierarchy.level_names(level) for level in range(3)]
+    camera = scene.cameras.select([view])
     results = []
-    for text, embedding in zip(texts, embeddings):
-        selection = select_reference(field, embedding, canonical)
+    for selection in FieldQuery(field, encoder).select(list(texts)):
+        text = selection.text
         wanted = np.zeros(len(field), dtype=bool)
         for level_names in names:
             wanted |= level_names == text
         union = (selection.gaussians | wanted).sum()
         iou = float((selection.gaussians & wanted).sum() / union) if wanted.any() else np.nan
-        coverage, _ = _render(scene, view, selection.gaussians[:, None].astype(np.float64))
-        tinted = np.where(
-            (coverage[..., 0] > 0.5)[..., None], 0.45 * rgb + 0.55 * _HIGHLIGHT, 0.55 * rgb
-        )
-        image = out / f"query-{_slug(text)}.png"
+        mask = selection_masks(scene.gaussians, camera, selection.gaussians)
+        tinted = np.where(mask[..., None], 0.45 * rgb + 0.55 * _HIGHLIGHT, 0.55 * rgb)
+        image = out / f"query-{slug(text)}.png"
         _write_png(image, np.concatenate([rgb, tinted], axis=1))
         files.append(image)
         results.append(

@@ -10,7 +10,8 @@ interrupted export never leaves a half-written file behind.
   region's colour at one level (DC term set, higher SH bands zeroed, so the colour does not
   change with the view).
 - :func:`write_labels` — per-Gaussian region ids: ``.npy`` (int32 [N] or [N, L]) or ``.json``.
-- :func:`write_mask_png` — a 2D mask as an 8-bit PNG (255 = selected).
+- :func:`write_mask_png` — a 2D mask as an 8-bit PNG (255 = selected); :func:`write_map_png` a
+  map of values in [0, 1] (a relevancy map) as an 8-bit PNG.
 - :func:`write_json` — any JSON value, UTF-8, indented.
 """
 
@@ -19,6 +20,7 @@ from __future__ import annotations
 import io
 import json
 import os
+import re
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -33,8 +35,10 @@ from thgs.scene import SH_C0, Gaussians, write_ply
 
 __all__ = [
     "region_colors",
+    "slug",
     "write_json",
     "write_labels",
+    "write_map_png",
     "write_mask_png",
     "write_region_ply",
     "write_selection_ply",
@@ -161,6 +165,23 @@ def write_mask_png(path: str | os.PathLike[str], mask: np.ndarray) -> None:
         raise InputError(Path(path), f"a mask must be [H, W] bool, got {mask.dtype} {mask.shape}")
     with atomic_output(path) as handle:
         Image.fromarray(mask.astype(np.uint8) * 255).save(handle, format="PNG")
+
+
+def write_map_png(path: str | os.PathLike[str], values: np.ndarray) -> None:
+    """Write an [H, W] map of values in [0, 1] as an 8-bit grayscale PNG (round(255 · v))."""
+    from PIL import Image
+
+    values = np.asarray(values, dtype=np.float64)
+    if values.ndim != 2 or not np.isfinite(values).all():
+        raise InputError(Path(path), f"a map must be [H, W] and finite, got {values.shape}")
+    pixels = np.floor(np.clip(values, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+    with atomic_output(path) as handle:
+        Image.fromarray(pixels).save(handle, format="PNG")
+
+
+def slug(text: str) -> str:
+    """A file-name-safe form of a query: lower case, runs of other characters as ``-``."""
+    return re.sub(r"[^a-z0-9]+", "-", text.lower()).strip("-") or "query"
 
 
 def write_json(path: str | os.PathLike[str], value: Any, *, indent: int | None = 2) -> None:

@@ -1,0 +1,37 @@
+"""The ``thgs`` command line: a thin layer over the library, and the only code that prints."""
+
+from __future__ import annotations
+
+import sys
+
+import tyro
+
+from thgs.cli._console import stderr
+from thgs.cli.build import build, demo
+from thgs.cli.query import export, pick, query
+from thgs.cli.scene import info, synth
+from thgs.errors import ThgsError
+
+__all__ = ["build", "demo", "entrypoint", "export", "info", "pick", "query", "synth"]
+
+
+def entrypoint(argv: list[str] | None = None) -> None:
+    """Run the CLI; bad input ends with one line on stderr and exit status 2."""
+    try:
+        tyro.extras.subcommand_cli_from_dict(
+            {
+                "demo": demo,
+                "build": build,
+                "query": query,
+                "pick": pick,
+                "export": export,
+                "info": info,
+                "synth": synth,
+            },
+            prog="thgs",
+            description="thgs: open-vocabulary, hierarchical understanding of Gaussian scenes.",
+            args=argv,
+        )
+    except ThgsError as exc:
+        stderr.print(f"[bold red]error:[/] {exc}", highlight=False)
+        sys.exit(2)

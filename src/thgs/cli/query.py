@@ -1,0 +1,348 @@
+"""``thgs query``, ``thgs pick`` and ``thgs export``: use a semantic field."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Literal
+
+import numpy as np
+import tyro
+from rich.table import Table
+
+from thgs.cli._console import setup_logging, stdout
+from thgs.errors import InputError, ThgsError
+
+__all__ = ["export", "pick", "query"]
+
+Mode = Literal["reference", "level", "threshold"]
+
+
+def _query_config(
+    mode: Mode | None, level: int | None, top: int, threshold: float | None, min_gaussians: int
+):
+    from thgs.query import QueryConfig
+
+    if mode is None:
+        mode = "reference" if level is None else "level"
+    if mode == "reference" and level is not None:
+        raise InputError("--level", "the reference mode pools levels 2 and 3; use --mode level")
+    return QueryConfig(
+        mode=mode,
+        level=3 if level is None else level,
+        top=top,
+        threshold=threshold,
+        min_gaussians=min_gaussians,
+    ).check()
+
+
+def _field_query(field_path: Path, field, text_model: Path | None, config):
+    from thgs.query import FieldQuery
+    from thgs.text import load_text_encoder
+
+    encoder = load_text_encoder(field.space, model_path=text_model)
+    return FieldQuery(field, encoder, config, source=str(field_path))
+
+
+def _unique_slugs(texts: list[str]) -> list[str]:
+    from thgs.export import slug
+
+    slugs: list[str] = []
+    for text in texts:
+        name, k = slug(text), 2
+        while name in slugs:
+            name, k = f"{slug(text)}-{k}", k + 1
+        slugs.append(name)
+    return slugs
+
+
+def _selection_table(title: str, field, selections) -> Table:
+    from thgs.field import FIELD_LEVELS
+
+    table = Table(title=title, title_justify="left")
+    for column in ("query", "regions (level region: relevancy, Gaussians)", "Gaussians"):
+        table.add_column(column)
+    for selection in selections:
+        regions = "; ".join(
+            f"{FIELD_LEVELS[k]} {r}: {score:.3f}, {int(field.sizes(k)[r]):,}"
+            for k, r, score in selection.regions
+        )
+        table.add_row(
+            selection.text, regions or "nothing relevant", f"{int(selection.gaussians.sum()):,}"
+        )
+    return table
+
+
+def query(
+    field: Path,
+    texts: tuple[str, ...],
+    /,
+    *,
+    mode: Mode | None = None,
+    level: int | None = None,
+    top: int = 1,
+    threshold: float | None = None,
+    min_gaussians: int = 0,
+    views: tuple[str, ...] = (),
+    out: Annotated[Path | None, tyro.conf.arg(aliases=("-o",))] = None,
+    relevancy: bool = False,
+    mask_threshold: float = 0.5,
+    scene: Path | None = None,
+    text_model: Path | None = None,
+    verbose: bool = False,
+) -> None:
+    """Ask a semantic field in words: which regions, how many Gaussians, and where in the views.
+
+    Prints each query's regions. With --out it writes results.json, and with --views the 2D
+    masks (the selection's rendered opacity above --mask-threshold) as <out>/<query>/<view>.png.
+
+    Args:
+        field: the field file (thgs build).
+        texts: one or more queries, e.g. mug "teddy bear".
+        mode: reference (the paper's: top 3 of levels 2 and 3, no threshold), level (the --top
+            best regions of --level) or threshold (every region of --level above --threshold,
+            possibly none). Default: reference, or level when --level is given.
+        level: 1 sub-parts, 2 parts, 3 objects (level and threshold modes; default 3).
+        top: level mode: how many regions.
+        threshold: threshold mode: relevancy needed (default: the embedding space's, 0.8 for
+            MiniLM, 0.5 for CLIP).
+        min_gaussians: never select regions with fewer Gaussians.
+        views: view names (image stems) to draw masks in, or "all".
+        out: folder for results.json and the masks.
+        relevancy: also write per-pixel relevancy maps (<view>-relevancy-<level>.png, 0–255).
+        mask_threshold: rendered opacity above which a pixel is in the mask.
+        scene: the scene the field was built on, if not where the field says.
+        text_model: a local folder with the text model, instead of the default location.
+        verbose: log what is loaded and how long it takes.
+    """
+    from thgs.export import write_json, write_map_png, write_mask_png
+    from thgs.field import FIELD_LEVELS, load_field
+    from thgs.field_scene import find_view, open_field_scene
+    from thgs.views import relevancy_map, selection_masks
+
+    setup_logging(verbose)
+    if not texts:
+        raise InputError("thgs query", "give at least one query text")
+    if (views or relevancy) and out is None:
+        raise InputError("--views", "masks and relevancy maps are written to files: pass --out")
+    if relevancy and not views:
+        raise InputError("--relevancy", "name the views to draw in with --views")
+    config = _query_config(mode, level, top, threshold, min_gaussians)
+    if views:
+        semantic, loaded = open_field_scene(field, scene)
+    else:
+        semantic, loaded = load_field(field), None
+    fq = _field_query(field, semantic, text_model, config)
+    selections = fq.select(list(texts))
+    stdout.print(_selection_table(f"thgs query {field} ({config.mode})", semantic, selections))
+    if out is None:
+        return
+    results = []
+    names = _unique_slugs(list(texts))
+    indices = []
+    if views:
+        cameras = loaded.cameras
+        wanted = cameras.stems if views == ("all",) else views
+        where = loaded.cameras_path or loaded.ply_path
+        indices = [find_view(cameras, name, where) for name in wanted]
+    selected = np.stack([s.gaussians for s in selections], axis=1)
+    files = {name: [] for name in names}
+    for index in indices:
+        camera = loaded.cameras.select([index])
+        stem = camera.stems[0]
+        masks = selection_masks(loaded.gaussians, camera, selected, threshold=mask_threshold)
+        for q, name in enumerate(names):
+            path = out / name / f"{stem}.png"
+            write_mask_png(path, masks[..., q])
+            files[name].append(str(path))
+        if relevancy:
+            for k in config.searched_levels:
+                per_gaussian = np.stack([fq.gaussian_relevancy(t, k) for t in texts], axis=1)
+                maps = relevancy_map(loaded.gaussians, camera, per_gaussian)
+                for q, name in enumerate(names):
+                    path = out / name / f"{stem}-relevancy-{FIELD_LEVELS[k]}.png"
+                    write_map_png(path, maps[..., q])
+                    files[name].append(str(path))
+    for selection, name in zip(selections, names):
+        results.append({**selection.to_json(semantic), "files": files[name]})
+    write_json(
+        out / "results.json",
+        {
+            "field": str(field),
+            "space": semantic.space,
+            "config": {
+                "mode": config.mode,
+                "searched_levels": list(config.searched_levels),
+                "threshold": config.threshold if config.threshold is not None else fq.threshold,
+                "top": config.top,
+                "min_gaussians": config.min_gaussians,
+            },
+            "queries": results,
+        },
+    )
+    masks = f" and masks for {len(indices)} views" if indices else ""
+    stdout.print(f"wrote {out / 'results.json'}{masks}")
+
+
+def pick(
+    field: Path,
+    /,
+    *,
+    view: str,
+    pixel: tuple[int, int],
+    level: int = 1,
+    scene: Path | None = None,
+    out: Annotated[Path | None, tyro.conf.arg(aliases=("-o",))] = None,
+    verbose: bool = False,
+) -> None:
+    """Click a pixel: the Gaussian under it and its region at every level.
+
+    Prints the region chain from superpoint to object and the picked level's parent and
+    children. With --out it writes pick.json, the region's mask in that view and its Gaussians
+    as a PLY.
+
+    Args:
+        field: the field file (thgs build).
+        view: the view's name (image stem).
+        pixel: X Y, column and row from the top-left corner.
+        level: the level to select: 0 superpoints, 1 sub-parts, 2 parts, 3 objects.
+        scene: the scene the field was built on, if not where the field says.
+        out: folder for pick.json, the mask PNG and the region's PLY.
+        verbose: log what is loaded.
+    """
+    from thgs.export import write_json, write_mask_png, write_selection_ply
+    from thgs.field import FIELD_LEVELS
+    from thgs.field_scene import find_view, open_field_scene
+    from thgs.views import pick as pick_pixel
+    from thgs.views import selection_masks
+
+    setup_logging(verbose)
+    if level not in (0, 1, 2, 3):
+        raise InputError("--level", f"must be 0, 1, 2 or 3, got {level}")
+    semantic, loaded = open_field_scene(field, scene)
+    index = find_view(loaded.cameras, view, loaded.cameras_path or loaded.ply_path)
+    camera = loaded.cameras.select([index])
+    picked = pick_pixel(semantic, loaded.gaussians, camera, pixel)
+    if picked is None:
+        raise ThgsError(f"{view}: no Gaussian at pixel ({pixel[0]}, {pixel[1]})")
+    region = picked.region(level)
+    table = Table(
+        title=f"thgs pick {view} ({pixel[0]}, {pixel[1]}): Gaussian {picked.gaussian}",
+        title_justify="left",
+    )
+    for column in ("level", "region", "Gaussians", ""):
+        table.add_column(column)
+    for k, name in enumerate(FIELD_LEVELS):
+        mark = "← picked" if k == level else ""
+        size = int(semantic.sizes(k)[picked.regions[k]])
+        table.add_row(f"{k} {name}", str(picked.regions[k]), f"{size:,}", mark)
+    stdout.print(table)
+    children = semantic.children(level, region).tolist() if level > 0 else []
+    parent = semantic.parent(level, region) if level < 3 else None
+    if level > 0:
+        stdout.print(f"children at level {level - 1}: {children}")
+    members = semantic.labels[:, level] == region
+    if out is None:
+        return
+    stem = camera.stems[0]
+    mask_path = out / f"{stem}-{FIELD_LEVELS[level]}-{region}.png"
+    ply_path = out / f"{FIELD_LEVELS[level]}-{region}.ply"
+    write_mask_png(mask_path, selection_masks(loaded.gaussians, camera, members))
+    write_selection_ply(ply_path, loaded.gaussians, members)
+    write_json(
+        out / "pick.json",
+        {
+            "field": str(field),
+            "view": stem,
+            "pixel": list(picked.pixel),
+            "gaussian": picked.gaussian,
+            "regions": dict(zip(FIELD_LEVELS, picked.regions)),
+            "level": level,
+            "region": region,
+            "gaussians": int(members.sum()),
+            "parent": parent,
+            "children": children,
+            "files": [str(mask_path), str(ply_path)],
+        },
+    )
+    stdout.print(f"wrote {out / 'pick.json'}, {mask_path.name} and {ply_path.name}")
+
+
+def export(
+    field: Path,
+    /,
+    *,
+    out: Annotated[Path, tyro.conf.arg(aliases=("-o",))],
+    query: tuple[str, ...] = (),
+    mode: Mode | None = None,
+    level: int | None = None,
+    top: int = 1,
+    threshold: float | None = None,
+    min_gaussians: int = 0,
+    color_level: int | None = None,
+    labels: bool = False,
+    seed: int = 0,
+    scene: Path | None = None,
+    text_model: Path | None = None,
+    verbose: bool = False,
+) -> None:
+    """Take results elsewhere: selections as PLYs, the scene coloured by region, labels.
+
+    Args:
+        field: the field file (thgs build).
+        out: folder to write into.
+        query: texts whose selections to write, one <query>.ply each (the input's PLY layout)
+            plus selections.json; the selection settings are thgs query's.
+        mode: see thgs query.
+        level: see thgs query.
+        top: see thgs query.
+        threshold: see thgs query.
+        min_gaussians: see thgs query.
+        color_level: write regions-<level>.ply, the whole scene coloured by region at this level
+            (0 superpoints … 3 objects).
+        labels: write labels.npy (int32 [N, 4], levels 0–3) and labels.json.
+        seed: of the region colours.
+        scene: the scene the field was built on, if not where the field says.
+        text_model: a local folder with the text model, instead of the default location.
+        verbose: log what is loaded.
+    """
+    from thgs.export import write_json, write_labels, write_region_ply, write_selection_ply
+    from thgs.field import FIELD_LEVELS
+    from thgs.field_scene import open_field_scene
+
+    setup_logging(verbose)
+    if not query and color_level is None and not labels:
+        raise InputError(
+            "thgs export", "nothing to export: pass --query, --color-level or --labels"
+        )
+    if color_level is not None and color_level not in (0, 1, 2, 3):
+        raise InputError("--color-level", f"must be 0, 1, 2 or 3, got {color_level}")
+    config = _query_config(mode, level, top, threshold, min_gaussians) if query else None
+    semantic, loaded = open_field_scene(field, scene)
+    written: list[Path] = []
+    if query:
+        fq = _field_query(field, semantic, text_model, config)
+        selections = fq.select(list(query))
+        stdout.print(_selection_table(f"thgs export {field} ({config.mode})", semantic, selections))
+        summary = []
+        for selection, name in zip(selections, _unique_slugs(list(query))):
+            entry = selection.to_json(semantic)
+            if not selection.empty:
+                path = out / f"{name}.ply"
+                write_selection_ply(path, loaded.gaussians, selection.gaussians)
+                written.append(path)
+                entry["ply"] = str(path)
+            summary.append(entry)
+        write_json(
+            out / "selections.json",
+            {"field": str(field), "mode": config.mode, "queries": summary},
+        )
+        written.append(out / "selections.json")
+    if color_level is not None:
+        path = out / f"regions-{FIELD_LEVELS[color_level]}.ply"
+        write_region_ply(path, loaded.gaussians, semantic, color_level, seed=seed)
+        written.append(path)
+    if labels:
+        for path in (out / "labels.npy", out / "labels.json"):
+            write_labels(path, semantic)
+            written.append(path)
+    stdout.print(f"wrote {len(written)} files to {out}/: " + ", ".join(p.name for p in written))

@@ -1,0 +1,118 @@
+"""A semantic field together with the scene it was built on.
+
+A field file holds labels and features, not geometry; drawing masks, picking pixels or exporting
+PLYs also needs the Gaussians and the cameras. ``thgs build`` and ``thgs demo`` record how they
+loaded the scene in the field's config (key ``"scene"``: the absolute path and the loader's
+arguments); :func:`open_field_scene` reads the field, reloads that scene (or the one given) and
+checks that it is the same scene by its fingerprint.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+from thgs.errors import InputError
+from thgs.field import SemanticField, load_field, scene_fingerprint
+from thgs.scene import Cameras, Scene, load_scene
+
+__all__ = ["find_view", "open_field_scene", "record_scene"]
+
+logger = logging.getLogger(__name__)
+
+
+def record_scene(
+    field: SemanticField,
+    path: str | os.PathLike[str],
+    *,
+    source: str | os.PathLike[str] | None = None,
+    iteration: int | None = None,
+    images: str | None = None,
+    scale: float = 1.0,
+) -> SemanticField:
+    """``field`` with how to reload its scene stored under ``config["scene"]``.
+
+    Paths are stored absolute, so the field can be used from any working folder.
+    """
+    record: dict[str, Any] = {"path": str(Path(path).resolve())}
+    if source is not None:
+        record["source"] = str(Path(source).resolve())
+    if iteration is not None:
+        record["iteration"] = int(iteration)
+    if images is not None:
+        record["images"] = images
+    if scale != 1.0:
+        record["scale"] = float(scale)
+    return replace(field, config={**field.config, "scene": record})
+
+
+def open_field_scene(
+    field_path: str | os.PathLike[str],
+    scene: str | os.PathLike[str] | None = None,
+    *,
+    source: str | os.PathLike[str] | None = None,
+    iteration: int | None = None,
+    images: str | None = None,
+    scale: float = 1.0,
+) -> tuple[SemanticField, Scene]:
+    """Load a field and the scene it was built on.
+
+    Args:
+        field_path: the field file.
+        scene: the scene folder or PLY; default the one recorded in the field. When given, the
+            other arguments are :func:`thgs.scene.load_scene`'s; otherwise the recorded ones.
+
+    Raises:
+        InputError: the field records no scene and none is given, the scene cannot be loaded,
+            or its Gaussians are not the ones the field was built on (fingerprint mismatch).
+    """
+    field_path = Path(field_path)
+    field = load_field(field_path)
+    if scene is None:
+        record = field.config.get("scene")
+        if not isinstance(record, dict) or "path" not in record:
+            raise InputError(
+                field_path,
+                "records no scene (built by an older thgs?); pass the scene with --scene",
+            )
+        scene, source = record["path"], record.get("source")
+        iteration, images = record.get("iteration"), record.get("images")
+        scale = record.get("scale", 1.0)
+        if not Path(scene).exists():
+            raise InputError(
+                field_path,
+                f"was built on {scene}, which no longer exists; pass the scene with --scene",
+            )
+    loaded = load_scene(scene, source=source, iteration=iteration, images=images, scale=scale)
+    if len(loaded.gaussians) != len(field):
+        raise InputError(
+            field_path,
+            f"has {len(field)} Gaussians but the scene {loaded.ply_path} has "
+            f"{len(loaded.gaussians)}: it was built on another scene",
+        )
+    if scene_fingerprint(loaded.gaussians) != field.fingerprint:
+        raise InputError(
+            field_path,
+            f"was built on other Gaussians than those in {loaded.ply_path} (fingerprints differ: "
+            "moved, reordered or retrained); rebuild the field for this scene",
+        )
+    logger.info("opened field %s on scene %s", field_path, loaded.ply_path)
+    return field, loaded
+
+
+def find_view(cameras: Cameras | None, name: str, source: str | os.PathLike[str]) -> int:
+    """Index of the camera whose stem or name is ``name``.
+
+    Raises:
+        InputError: no cameras, or no camera of that name (the message lists some).
+    """
+    if cameras is None:
+        raise InputError(source, "the scene has no cameras")
+    for i, (stem, full) in enumerate(zip(cameras.stems, cameras.names)):
+        if name in (stem, full):
+            return i
+    shown = ", ".join(cameras.stems[:8]) + (", …" if len(cameras) > 8 else "")
+    raise InputError(source, f"no view named {name!r} (views: {shown})")
