@@ -4,6 +4,7 @@ hand-built field."""
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -201,6 +202,14 @@ def test_small_regions_can_be_excluded():
     # every level-2 region has 2 Gaussians, level-3 regions 4
     chosen = fq.select(["red"], fq.with_config(min_gaussians=3))[0]
     assert {level for level, _, _ in chosen.regions} == {3}
+    assert fq.min_gaussians == 0  # the field does not say
+    # by default the field's own small-region size (thres_merge) applies
+    small = replace(field, config={"merge": {"min_region_gaussians": 3}})
+    fq = FieldQuery(small, _encoder())
+    assert fq.min_gaussians == 3
+    assert {level for level, _, _ in fq.select(["red"])[0].regions} == {3}
+    everything = fq.select(["red"], fq.with_config(min_gaussians=0))[0]
+    assert {level for level, _, _ in everything.regions} == {2, 3}
 
 
 def test_queries_in_another_space_are_refused():

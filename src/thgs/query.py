@@ -128,8 +128,11 @@ class QueryConfig:
         top: level mode: how many regions (1).
         threshold: threshold mode: the relevancy a region needs; None: :func:`default_threshold`
             of the field's space.
-        min_gaussians: regions with fewer Gaussians are never selected (0: all may be). Leftover
-            specks that merging could not absorb otherwise win queries on a few lucky views.
+        min_gaussians: regions with fewer Gaussians are never selected (0: all may be); None:
+            the field's small-region size (``config["merge"]["min_region_gaussians"]``, 20 for
+            the LERF preset, 0 if the field does not say). Leftover specks that merging could
+            not absorb otherwise win queries on a few lucky views (design §4.6: excluded from
+            queries).
         temperature: t of :func:`relevancy` (10).
     """
 
@@ -140,7 +143,7 @@ class QueryConfig:
     level: int = 3
     top: int = 1
     threshold: float | None = None
-    min_gaussians: int = 0
+    min_gaussians: int | None = None
     temperature: float = 10.0
 
     def check(self) -> QueryConfig:
@@ -160,7 +163,7 @@ class QueryConfig:
                 raise InputError(f"QueryConfig.{name}", f"must be ≥ 1, got {getattr(self, name)}")
         if self.threshold is not None and not 0.0 <= self.threshold <= 1.0:
             raise InputError("QueryConfig.threshold", f"must be in [0, 1], got {self.threshold}")
-        if self.min_gaussians < 0:
+        if self.min_gaussians is not None and self.min_gaussians < 0:
             raise InputError("QueryConfig.min_gaussians", f"must be ≥ 0, got {self.min_gaussians}")
         if not self.temperature > 0:
             raise InputError("QueryConfig.temperature", f"must be > 0, got {self.temperature}")
@@ -294,6 +297,7 @@ class FieldQuery:
         self.encoder = encoder
         self.config = config.check()
         self.threshold = default_threshold(field.space)
+        self.min_gaussians = _small_region_size(field)
         self._canonical = encoder.encode(list(CANONICAL_PHRASES)).astype(np.float64)
         self._embeddings: dict[str, np.ndarray] = {}
         self._members = {k: _Members(field.labels[:, k], field.region_counts[k]) for k in (1, 2, 3)}
@@ -346,7 +350,8 @@ class FieldQuery:
         config = (config or self.config).check()
         todo = [text for text in dict.fromkeys(texts) if (text, config) not in self._results]
         if todo:
-            allowed = {k: self._sizes[k] >= config.min_gaussians for k in config.searched_levels}
+            smallest = self.min_gaussians if config.min_gaussians is None else config.min_gaussians
+            allowed = {k: self._sizes[k] >= smallest for k in config.searched_levels}
             scores = {
                 k: self.relevancy(todo, k, config.temperature) for k in config.searched_levels
             }
@@ -376,6 +381,13 @@ class FieldQuery:
         self._results.move_to_end(key)
         while len(self._results) > _CACHED_RESULTS:
             self._results.popitem(last=False)
+
+
+def _small_region_size(field: SemanticField) -> int:
+    """The field's ``thres_merge``: regions below it are unabsorbed leftovers."""
+    merge = field.config.get("merge")
+    size = merge.get("min_region_gaussians", 0) if isinstance(merge, dict) else 0
+    return int(size) if isinstance(size, int) and not isinstance(size, bool) else 0
 
 
 def _checked_texts(texts: Sequence[str]) -> list[str]:

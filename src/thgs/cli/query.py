@@ -18,7 +18,11 @@ Mode = Literal["reference", "level", "threshold"]
 
 
 def _query_config(
-    mode: Mode | None, level: int | None, top: int, threshold: float | None, min_gaussians: int
+    mode: Mode | None,
+    level: int | None,
+    top: int,
+    threshold: float | None,
+    min_gaussians: int | None,
 ):
     from thgs.query import QueryConfig
 
@@ -81,7 +85,7 @@ def query(
     level: int | None = None,
     top: int = 1,
     threshold: float | None = None,
-    min_gaussians: int = 0,
+    min_gaussians: int | None = None,
     views: tuple[str, ...] = (),
     out: Annotated[Path | None, tyro.conf.arg(aliases=("-o",))] = None,
     relevancy: bool = False,
@@ -105,7 +109,8 @@ def query(
         top: level mode: how many regions.
         threshold: threshold mode: relevancy needed (default: the embedding space's, 0.8 for
             MiniLM, 0.5 for CLIP).
-        min_gaussians: never select regions with fewer Gaussians.
+        min_gaussians: never select regions with fewer Gaussians (default: the field's
+            small-region size, 20 for the LERF preset; 0 to allow every region).
         views: view names (image stems) to draw masks in, or "all".
         out: folder for results.json and the masks.
         relevancy: also write per-pixel relevancy maps (<view>-relevancy-<level>.png, 0–255).
@@ -174,7 +179,9 @@ def query(
                 "searched_levels": list(config.searched_levels),
                 "threshold": config.threshold if config.threshold is not None else fq.threshold,
                 "top": config.top,
-                "min_gaussians": config.min_gaussians,
+                "min_gaussians": (
+                    fq.min_gaussians if config.min_gaussians is None else config.min_gaussians
+                ),
             },
             "queries": results,
         },
@@ -277,7 +284,7 @@ def export(
     level: int | None = None,
     top: int = 1,
     threshold: float | None = None,
-    min_gaussians: int = 0,
+    min_gaussians: int | None = None,
     color_level: int | None = None,
     labels: bool = False,
     seed: int = 0,
