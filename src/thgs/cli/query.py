@@ -186,7 +186,8 @@ def query(
             "queries": results,
         },
     )
-    masks = f" and masks for {len(indices)} views" if indices else ""
+    plural = "s" if len(indices) != 1 else ""
+    masks = f" and masks for {len(indices)} view{plural}" if indices else ""
     stdout.print(f"wrote {out / 'results.json'}{masks}")
 
 
