@@ -54,7 +54,9 @@ MergeMode = Literal["progressive", "independent", "instance"]
 
 @dataclass(frozen=True)
 class MergeConfig:
-    """How superpoints merge into levels 1–3. Defaults are the reference's LERF preset.
+    """How superpoints merge into levels 1–3. Defaults: the reference's LERF numbers with our
+    fixes (``min_max_weight``, ``visibility_power``, ``two_hop_weight``, ``rounds``);
+    :meth:`as_reference` gives the authors' behaviour.
 
     Attributes:
         thresholds: affinity a unit needs to join a region, per pass (s, m, l): (0.9, 0.7, 0.7).
@@ -119,7 +121,8 @@ class MergeConfig:
 
     @classmethod
     def lerf(cls) -> MergeConfig:
-        """The reference's LERF-OVS setting: thresholds 0.9 / 0.7 / 0.7, small regions < 20."""
+        """The reference's LERF-OVS numbers: thresholds 0.9 / 0.7 / 0.7, small regions < 20 (our
+        fixes on; see :meth:`as_reference`)."""
         return cls()
 
     @classmethod
