@@ -1,7 +1,7 @@
 """Time, peak memory and per-level quality of ``build_field`` on the synthetic presets.
 
     .venv/bin/python benchmarks/bench_build.py                          # synth-small, medium
-    .venv/bin/python benchmarks/bench_build.py --presets synth-small --seeds 0 1 2
+    .venv/bin/python benchmarks/bench_build.py --presets synth-small --seeds 0 1 2 3
 
 Each (preset, seed) runs in its own process. The guidance is the synthetic oracle's at its default
 fault severity (0.5) with hash features (quality here is about regions, not text). The field is
@@ -75,10 +75,12 @@ def table(runs: list[dict]) -> str:
                 f"| {r['stages']['lift']:.1f} | {r['peak_gib']:.2f} | {counts} "
                 f"| {r['purity']:.3f} | " + " | ".join(f"{m:.3f}" for m in r["miou"]) + " |"
             )
-    ours = [run["variants"]["ours"]["miou"] for run in runs]
-    if ours:
-        mean = np.mean(ours, axis=0)
-        lines.append("\nmean mIoU (ours): " + " / ".join(f"{m:.3f}" for m in mean))
+    lines.append("")
+    for variant in ("ours", "reference"):
+        scores = [run["variants"][variant]["miou"] for run in runs]
+        if scores:
+            mean = np.mean(scores, axis=0)
+            lines.append(f"mean mIoU ({variant}): " + " / ".join(f"{m:.3f}" for m in mean))
     return "\n".join(lines)
 
 

@@ -71,12 +71,14 @@ def test_units_joined_by_many_gaussian_pairs_touch(links):
 def _brute_affinity(units, count, a, b, sources):
     sizes = np.bincount(units, minlength=count)
     numerator = denominator = 0.0
-    for gaussians, labels in sources:
+    for source in sources:
+        gaussians, labels = source[:2]
+        weights = source[2] if len(source) > 2 else np.ones(len(labels))
         hist = {}
-        for g, label in zip(gaussians, labels):
-            if label >= 0:
+        for g, label, weight in zip(gaussians, labels, weights):
+            if label >= 0 and weight > 0:
                 hist.setdefault(units[g], {}).setdefault(label, 0)
-                hist[units[g]][label] += 1
+                hist[units[g]][label] += weight
         if a not in hist or b not in hist:
             continue
         share_a = sum(hist[a].values()) / sizes[a]
@@ -89,14 +91,17 @@ def _brute_affinity(units, count, a, b, sources):
 
 
 @pytest.mark.parametrize("seed", range(3))
-def test_pair_affinity_matches_brute_force(seed):
+@pytest.mark.parametrize("weighted", [False, True])
+def test_pair_affinity_matches_brute_force(seed, weighted):
     rng = np.random.default_rng(seed)
     units = rng.integers(0, 10, 200)
     units[:10] = np.arange(10)
     sources = []
     for _ in range(5):
         seen = np.sort(rng.choice(200, 120, replace=False))
-        sources.append((seen, rng.integers(-1, 6, seen.size)))
+        labels = rng.integers(-1, 6, seen.size)
+        weights = rng.uniform(0, 1, seen.size) * (rng.uniform(size=seen.size) > 0.1)
+        sources.append((seen, labels, weights) if weighted else (seen, labels))
     sources.append((np.zeros(0, np.int64), np.zeros(0, np.int64)))  # a view without labels
     pairs = np.array([(a, b) for a in range(10) for b in range(a + 1, 10)])
     got = pair_affinity(units, 10, pairs, sources)
@@ -112,6 +117,12 @@ def test_affinity_hand_case():
     view_b = (np.array([0, 2]), np.array([7, 8]))
     got = pair_affinity(units, 2, np.array([[0, 1]]), [view_a, view_b])
     np.testing.assert_allclose(got, [1 / 1.25])
+    # weighted labels: in view B Gaussian 0 now weighs 0.2 and 2 weighs 0.1 (faint): shares
+    # 0.1 and 0.05, so B counts 0.005 against A's 1: A = 1 / 1.005
+    view_b = (np.array([0, 2]), np.array([7, 8]), np.array([0.2, 0.1]))
+    view_a = (*view_a, np.ones(4))
+    got = pair_affinity(units, 2, np.array([[0, 1]]), [view_a, view_b])
+    np.testing.assert_allclose(got, [1 / 1.005])
 
 
 def test_growing_hand_case():
@@ -131,7 +142,7 @@ def test_growing_hand_case():
     one_cols = [1, 0, 2, 1, 3, 2]
     indptr1 = np.concatenate([[0], np.cumsum(np.bincount(one_rows, minlength=4))])
 
-    def grow(threshold):
+    def grow(threshold, two_hop=1.0):
         return _grow(
             indptr1.astype(np.int64),
             np.array(one_cols, dtype=np.int64),
@@ -142,12 +153,15 @@ def test_growing_hand_case():
             np.ones(4),
             threshold,
             2.0,
+            two_hop,
         )
 
     np.testing.assert_array_equal(grow(0.79), [0, 0, 0, 1])
     np.testing.assert_array_equal(grow(0.81), [0, 0, 1, 2])  # 2 seeds a region 3 cannot join
     np.testing.assert_array_equal(grow(0.15), [0, 0, 0, 0])
     np.testing.assert_array_equal(grow(0.96), [0, 1, 2, 3])
+    # touching members only (ours): unit 2 sees A(1, 2) = 0.95 alone and joins at 0.81
+    np.testing.assert_array_equal(grow(0.81, two_hop=0.0), [0, 0, 0, 1])
 
 
 def _blocks_scene():
@@ -169,7 +183,7 @@ def _blocks_scene():
     return gaussians, superpoints, truth
 
 
-def _views(truth, count=4, offset=100):
+def _views(truth, count=4, offset=100, max_weight=0.5):
     n = len(truth)
     labels = np.stack([truth[:, 0], truth[:, 0], truth[:, 1] + offset, truth[:, 2] + 2 * offset])
     return [
@@ -177,7 +191,7 @@ def _views(truth, count=4, offset=100):
             gaussians=np.arange(n, dtype=np.int32),
             labels=labels.T.astype(np.int16),
             depths=np.full(n, 2.0, np.float32),
-            max_weights=np.full(n, 0.5, np.float32),
+            max_weights=np.full(n, max_weight, np.float32),
         )
         for _ in range(count)
     ]
@@ -216,8 +230,44 @@ def test_hidden_labels_do_not_vote():
     ours = merge_levels(gaussians, superpoints, views, MergeConfig())
     assert ours.counts == (16, 8, 4, 2)
     # the reference counts them: across objects A = 12 / 16 = 0.75 ≥ 0.7, one object remains
-    reference = merge_levels(gaussians, superpoints, views, MergeConfig(min_max_weight=0.0))
+    reference = merge_levels(gaussians, superpoints, views, MergeConfig().as_reference())
     assert reference.counts[3] == 1
+
+
+def test_faint_labels_weigh_less():
+    # four views see the blocks well (max w 0.9) with clean labels; eight see them faintly
+    # (max w 0.1, above the 0.05 threshold) with every superpoint in a mask of its own. With
+    # every label weighing 1, two superpoints of a sub-part agree in 4 of 12 views (A = 1/3)
+    # and nothing merges; weighted by (max w)², a faint view counts 1/6561 of a clear one.
+    gaussians, superpoints, truth = _blocks_scene()
+    split = np.repeat(superpoints[:, None], 3, axis=1) + 1000
+    views = [*_views(truth, max_weight=0.9), *_views(split, count=8, max_weight=0.1)]
+    ours = merge_levels(gaussians, superpoints, views, MergeConfig())
+    for k in (1, 2, 3):
+        np.testing.assert_array_equal(ours.labels[:, k], truth[:, k - 1])
+    unweighted = merge_levels(gaussians, superpoints, views, MergeConfig(visibility_power=0.0))
+    assert unweighted.counts[1] == 16
+
+
+def test_rounds_merge_regions_whose_pooled_evidence_agrees():
+    # 16 superpoints in a line. Three views put all of them in one mask; a fourth sees only
+    # superpoints 0 and 1, in different masks. A(0, 1) = 3 / 4 < 0.9, so 0 cannot join 1 and
+    # one round leaves {0} and {1 … 15}. In the second round {1 … 15} is the unit: the fourth
+    # view sees 1/15 of it, A = 3 / (3 + 1/15) = 0.98, and the two regions merge.
+    gaussians, superpoints, _ = _blocks_scene()
+    n = len(superpoints)
+    one = np.zeros((n, 3), dtype=np.int64)
+    views = _views(one, count=3)
+    seen = np.flatnonzero(superpoints < 2).astype(np.int32)
+    labels = np.repeat((superpoints[seen] + 7)[:, None], 4, axis=1).astype(np.int16)
+    views.append(
+        ViewLift(seen, labels, np.full(seen.size, 2.0, np.float32), np.full(seen.size, 0.5))
+    )
+    ours = merge_levels(gaussians, superpoints, views, MergeConfig())
+    assert ours.counts[1] == 1
+    single = merge_levels(gaussians, superpoints, views, MergeConfig(rounds=1))
+    assert single.counts[1] == 2
+    np.testing.assert_array_equal(single.labels[:, 1], (superpoints > 0).astype(np.int32))
 
 
 def test_small_regions_join_their_most_similar_neighbour():
@@ -240,3 +290,13 @@ def test_bad_input_is_named():
         merge_levels(gaussians, superpoints * 2, _views(truth))
     with pytest.raises(InputError, match="mode"):
         MergeConfig(mode="flat")
+    for bad in ({"rounds": 0}, {"two_hop_weight": -1.0}, {"visibility_power": -1.0}):
+        with pytest.raises(InputError, match="rounds"):
+            MergeConfig(**bad)
+
+
+def test_reference_config_keeps_the_authors_merging():
+    reference = MergeConfig.lerf().as_reference()
+    assert (reference.min_max_weight, reference.visibility_power) == (0.0, 0.0)
+    assert (reference.one_hop_weight, reference.two_hop_weight, reference.rounds) == (2.0, 1.0, 1)
+    assert reference.thresholds == (0.9, 0.7, 0.7)

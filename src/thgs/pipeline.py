@@ -305,12 +305,13 @@ class FieldConfig:
 
     def as_reference(self) -> FieldConfig:
         """The same numbers with the authors' behaviour where ours differs: absolute vote
-        offsets, edge weights against the reweighted mean, and every label voting in merging
-        (no visibility threshold)."""
+        offsets, edge weights against the reweighted mean, and the reference's merging (every
+        label votes with weight 1, 2-hop members count, one round per pass:
+        :meth:`thgs.hierarchy.MergeConfig.as_reference`)."""
         return replace(
             self,
             superpoints=self.superpoints.as_reference(),
-            merge=replace(self.merge, min_max_weight=0.0),
+            merge=self.merge.as_reference(),
         )
 
     def to_json(self) -> dict[str, Any]:
