@@ -145,7 +145,8 @@ def test_demo_builds_queries_and_reports(tmp_path, capsys):
     assert [q["text"] for q in report["queries"]] == ["mug", "table"]
     for query in report["queries"]:
         assert (out / query["image"]).is_file() and len(query["regions"]) == 3
-        assert 0.0 <= query["iou"] <= 1.0
+        assert 0.0 <= query["iou"] <= 1.0 and 0.0 <= query["best_iou"] <= 1.0
+    assert [q["level"] for q in report["queries"]] == [3, 3]  # mug and table are objects
     assert set(report["miou"]) == {"subpart", "part", "object"}
     assert all(0.0 < value <= 1.0 for value in report["miou"].values())
     assert (out / "levels.png").is_file() and (out / "field.thgs").is_file()

@@ -174,11 +174,15 @@ def demo(
         )
     stdout.print(levels)
     queries = Table(title="text queries (the paper's selection)", title_justify="left")
-    for column in ("query", "Gaussians", "3-D IoU", "picture"):
+    for column in ("query", "Gaussians", "3-D IoU", "best region of its level", "picture"):
         queries.add_column(column)
     for result in report.queries:
         iou = "–" if math.isnan(result.iou) else f"{result.iou:.3f}"
-        queries.add_row(result.text, f"{result.selected:,}", iou, result.image.name)
+        best = "–" if math.isnan(result.best_iou) else f"{result.best_iou:.3f}"
+        level = ("sub-part", "part", "object")[result.level - 1]
+        queries.add_row(
+            result.text, f"{result.selected:,}", iou, f"{level}: {best}", result.image.name
+        )
     stdout.print(queries)
     stdout.print(
         f"build {sum(report.timings.values()):.1f} s, whole demo {report.seconds:.1f} s; "
