@@ -15,7 +15,6 @@ The synthetic features are all-MiniLM-L6-v2 text embeddings standing in for CLIP
 
 from __future__ import annotations
 
-import json
 import logging
 import os
 import time
@@ -25,13 +24,12 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from PIL import Image
 
 from thgs._atomic import atomic_output
 from thgs.errors import InputError
 from thgs.eval import matched_miou, purity
 from thgs.eval.ground_truth import Hierarchy, read_hierarchy
-from thgs.export import slug
+from thgs.export import region_colors, slug, write_json, write_map_png
 from thgs.field import FIELD_LEVELS, SemanticField, save_field
 from thgs.field_scene import record_scene
 from thgs.guidance import load_guidance, read_embedding_space
@@ -246,10 +244,6 @@ def _iou(selected: np.ndarray, wanted: np.ndarray) -> float:
     return float((selected & wanted).sum() / (selected | wanted).sum())
 
 
-def _palette(count: int, seed: int) -> np.ndarray:
-    return np.random.default_rng(seed).uniform(0.15, 1.0, size=(count, 3))
-
-
 def _render(scene: Scene, view: int, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     out = render(
         scene.gaussians, scene.cameras.select([view]), torch.from_numpy(values.astype(np.float32))
@@ -257,16 +251,10 @@ def _render(scene: Scene, view: int, values: np.ndarray) -> tuple[np.ndarray, np
     return out.image.numpy().astype(np.float64), out.alpha.numpy().astype(np.float64)
 
 
-def _write_png(path: Path, image: np.ndarray) -> None:
-    pixels = (np.clip(image, 0.0, 1.0) * 255 + 0.5).astype(np.uint8)
-    with atomic_output(path) as handle:
-        Image.fromarray(pixels).save(handle, format="PNG")
-
-
 def _levels_picture(scene: Scene, field: SemanticField, view: int, rgb: np.ndarray) -> np.ndarray:
     panels = [rgb]
     for k in range(4):
-        colors = _palette(field.region_counts[k], k)[field.labels[:, k]]
+        colors = region_colors(field.labels[:, k], seed=k)
         image, _ = _render(scene, view, colors)
         panels.append(image)
     return np.concatenate(panels, axis=1)
@@ -334,7 +322,7 @@ def run_demo(
     view = evaluation_views(len(scene.cameras), 4)[0]
     rgb, _ = _render(scene, view, scene.gaussians.dc_colors().detach().cpu().numpy())
     levels_path = out / "levels.png"
-    _write_png(levels_path, _levels_picture(scene, field, view, rgb))
+    write_map_png(levels_path, _levels_picture(scene, field, view, rgb))
     files.append(levels_path)
 
     texts = tuple(queries) if queries is not None else demo_queries(hierarchy)
@@ -354,7 +342,7 @@ def run_demo(
         mask = selection_masks(scene.gaussians, camera, selection.gaussians)
         tinted = np.where(mask[..., None], 0.45 * rgb + 0.55 * _HIGHLIGHT, 0.55 * rgb)
         image = out / f"query-{slug(text)}.png"
-        _write_png(image, np.concatenate([rgb, tinted], axis=1))
+        write_map_png(image, np.concatenate([rgb, tinted], axis=1))
         files.append(image)
         results.append(
             QueryResult(
@@ -393,9 +381,7 @@ def run_demo(
         queries=tuple(results),
         files=(*files, json_path, markdown_path),
     )
-    with atomic_output(json_path, "w") as handle:
-        json.dump(report.to_json(), handle, indent=2)
-        handle.write("\n")
+    write_json(json_path, report.to_json())
     with atomic_output(markdown_path, "w") as handle:
         handle.write(report.markdown())
     return report

@@ -10,8 +10,8 @@ interrupted export never leaves a half-written file behind.
   region's colour at one level (DC term set, higher SH bands zeroed, so the colour does not
   change with the view).
 - :func:`write_labels` — per-Gaussian region ids: ``.npy`` (int32 [N] or [N, L]) or ``.json``.
-- :func:`write_mask_png` — a 2D mask as an 8-bit PNG (255 = selected); :func:`write_map_png` a
-  map of values in [0, 1] (a relevancy map) as an 8-bit PNG.
+- :func:`write_mask_png` — a 2D mask as an 8-bit PNG (255 = selected); :func:`write_map_png`
+  values in [0, 1] (a relevancy map, an RGB picture) as an 8-bit PNG.
 - :func:`write_json` — any JSON value, UTF-8, indented.
 """
 
@@ -158,22 +158,22 @@ def write_labels(
 
 def write_mask_png(path: str | os.PathLike[str], mask: np.ndarray) -> None:
     """Write an [H, W] bool mask as an 8-bit grayscale PNG (0 / 255)."""
-    from PIL import Image
-
     mask = np.asarray(mask)
     if mask.ndim != 2 or mask.dtype != np.bool_:
         raise InputError(Path(path), f"a mask must be [H, W] bool, got {mask.dtype} {mask.shape}")
-    with atomic_output(path) as handle:
-        Image.fromarray(mask.astype(np.uint8) * 255).save(handle, format="PNG")
+    write_map_png(path, mask.astype(np.float64))
 
 
 def write_map_png(path: str | os.PathLike[str], values: np.ndarray) -> None:
-    """Write an [H, W] map of values in [0, 1] as an 8-bit grayscale PNG (round(255 · v))."""
+    """Write values in [0, 1] as an 8-bit PNG (round(255 · v), clipped): [H, W] grayscale (a
+    relevancy map) or [H, W, 3] RGB (a picture)."""
     from PIL import Image
 
     values = np.asarray(values, dtype=np.float64)
-    if values.ndim != 2 or not np.isfinite(values).all():
-        raise InputError(Path(path), f"a map must be [H, W] and finite, got {values.shape}")
+    if values.ndim not in (2, 3) or values.shape[2:] not in ((), (3,)):
+        raise InputError(Path(path), f"an image must be [H, W] or [H, W, 3], got {values.shape}")
+    if not np.isfinite(values).all():
+        raise InputError(Path(path), "an image must have finite values")
     pixels = np.floor(np.clip(values, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
     with atomic_output(path) as handle:
         Image.fromarray(pixels).save(handle, format="PNG")

@@ -31,11 +31,10 @@ __all__ = ["Pick", "pick", "relevancy_map", "selection_masks", "selection_opacit
 
 def _columns(values: np.ndarray, n: int, name: str) -> tuple[np.ndarray, bool]:
     values = np.asarray(values)
+    if values.ndim not in (1, 2) or values.shape[0] != n:
+        raise InputError(name, f"must be [N] or [N, Q] with N = {n}, got {list(values.shape)}")
     single = values.ndim == 1
-    values = values.reshape(values.shape[0], -1) if values.ndim else values
-    if values.ndim != 2 or values.shape[0] != n:
-        raise InputError(name, f"must be [N] or [N, Q] with N = {n}, got {list(np.shape(values))}")
-    return values, single
+    return (values[:, None] if single else values), single
 
 
 def _render_columns(

@@ -141,16 +141,18 @@ def query(
     stdout.print(_selection_table(f"thgs query {field} ({config.mode})", semantic, selections))
     if out is None:
         return
-    results = []
     names = _unique_slugs(list(texts))
+    files: dict[str, list[str]] = {name: [] for name in names}
     indices = []
     if views:
-        cameras = loaded.cameras
-        wanted = cameras.stems if views == ("all",) else views
+        wanted = loaded.cameras.stems if views == ("all",) else views
         where = loaded.cameras_path or loaded.ply_path
-        indices = [find_view(cameras, name, where) for name in wanted]
+        indices = [find_view(loaded.cameras, name, where) for name in wanted]
     selected = np.stack([s.gaussians for s in selections], axis=1)
-    files = {name: [] for name in names}
+    relevancies = {
+        k: np.stack([fq.gaussian_relevancy(text, k) for text in texts], axis=1)
+        for k in (config.searched_levels if relevancy else ())
+    }
     for index in indices:
         camera = loaded.cameras.select([index])
         stem = camera.stems[0]
@@ -159,16 +161,16 @@ def query(
             path = out / name / f"{stem}.png"
             write_mask_png(path, masks[..., q])
             files[name].append(str(path))
-        if relevancy:
-            for k in config.searched_levels:
-                per_gaussian = np.stack([fq.gaussian_relevancy(t, k) for t in texts], axis=1)
-                maps = relevancy_map(loaded.gaussians, camera, per_gaussian)
-                for q, name in enumerate(names):
-                    path = out / name / f"{stem}-relevancy-{FIELD_LEVELS[k]}.png"
-                    write_map_png(path, maps[..., q])
-                    files[name].append(str(path))
-    for selection, name in zip(selections, names):
-        results.append({**selection.to_json(semantic), "files": files[name]})
+        for k, per_gaussian in relevancies.items():
+            maps = relevancy_map(loaded.gaussians, camera, per_gaussian)
+            for q, name in enumerate(names):
+                path = out / name / f"{stem}-relevancy-{FIELD_LEVELS[k]}.png"
+                write_map_png(path, maps[..., q])
+                files[name].append(str(path))
+    results = [
+        {**selection.to_json(semantic), "files": files[name]}
+        for selection, name in zip(selections, names)
+    ]
     write_json(
         out / "results.json",
         {
