@@ -328,5 +328,7 @@ def test_scannet_scores_checks_inputs():
         scannet_scores(ids, ids, ones, [1, 3])
     with pytest.raises(InputError, match="opacity must be finite"):
         scannet_scores(ids, ids, np.array([0.5, 1.5, 0.5]), [1, 2])
+    with pytest.raises(InputError, match="min_opacity must be in"):
+        scannet_scores(ids, ids, ones, [1, 2], min_opacity=float("nan"))
     with pytest.raises(InputError, match="truth must be integer"):
         scannet_scores(ids, ids.astype(float), ones, [1, 2])

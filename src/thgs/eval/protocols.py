@@ -1,8 +1,8 @@
 """The per-image and per-point scoring rules of the benchmark protocols.
 
 Pure functions on arrays; reading labels, rendering and averaging over prompts, frames and
-scenes belong to the dataset-level evaluator. Each rule below was read in the reference code
-(the upstream repositories as stored in a public code index; the path is the file read).
+scenes belong to the dataset-level evaluator (``docs/protocols.md`` says how the references
+average). Each rule below was read in the reference code (repository and file named).
 
 THGS / P-3D on LERF-OVS (``docs/design.md`` §6):
 
@@ -38,10 +38,10 @@ lists ``scene_texts`` (:data:`OPENGAUSSIAN_LERF_PROMPTS`).
 OpenGaussian's ScanNet protocol (same repository, ``scripts/eval_scannet.py``,
 ``calculate_metrics``): :func:`scannet_scores`.
 
-Deviations, all documented per function: arithmetic is float64 (the references use float32
-and, for the 30×30 kernel, OpenCV's DFT path), so pixels within ~1e-7 of a threshold or a peak
-may decide differently; :func:`mask_iou` scores two empty masks 1.0 (LangSplat divides 0 by 0,
-OpenGaussian's ``compute_lerf_iou.py`` returns 0; ground-truth masks are never empty);
+Deviations, all documented per function: arithmetic is float64 (the references use float32,
+and OpenCV may filter the 30×30 kernel through the DFT), so pixels within ~1e-7 of a threshold
+or a peak may decide differently; :func:`mask_iou` scores two empty masks 1.0 (LangSplat divides
+0 by 0, OpenGaussian's ``compute_lerf_iou.py`` returns 0; ground-truth masks are never empty);
 :func:`majority_filter` rejects masks narrower than 2 pixels (the reference's window is empty
 there and its ``argmax`` fails); :func:`scannet_scores` reports NaN, not 0, for classes absent
 from the ground truth (they are left out of the means either way).
@@ -482,8 +482,8 @@ def scannet_scores(
 
     Raises:
         InputError: arrays not [N] of one length, ``predicted`` or ``truth`` not integer,
-            ``opacity`` not finite in [0, 1], ``classes`` empty or repeated, or a prediction
-            outside ``classes``.
+            ``opacity`` or ``min_opacity`` not finite in [0, 1], ``classes`` empty or repeated,
+            or a prediction outside ``classes``.
     """
     predicted = _int_labels("predicted", predicted)
     truth = _int_labels("truth", truth)
@@ -498,6 +498,8 @@ def scannet_scores(
         raise InputError("scannet_scores", f"opacity must be real values, got {opacity.dtype}")
     if not (np.isfinite(opacity).all() and (opacity >= 0).all() and (opacity <= 1).all()):
         raise InputError("scannet_scores", "opacity must be finite activated values in [0, 1]")
+    if not 0 <= min_opacity <= 1:
+        raise InputError("scannet_scores", f"min_opacity must be in [0, 1], got {min_opacity!r}")
     try:
         ids = np.asarray(classes)
     except (TypeError, ValueError) as exc:
