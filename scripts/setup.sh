@@ -16,7 +16,7 @@ python=${THGS_PYTHON:-python3}
 constraints=$root/scripts/constraints.txt
 # gsplat ([gpu]) is a pure-Python wheel that compiles its CUDA kernels on first use on a GPU; on a
 # CPU machine it is installed too, for the tests against its pure-torch projection.
-extras=${THGS_EXTRAS:-models,viewer,gpu,demo,dev}
+extras=${THGS_EXTRAS:-models,viewer,gpu,demo,bench,dev}
 
 stamp=$venv/.thgs-setup
 inputs=$(cat "$root/pyproject.toml" "$constraints" "$root/scripts/setup.sh"; echo "extras=$extras")

@@ -332,3 +332,96 @@ def test_field_without_or_with_another_scene_is_refused(small_field, tmp_path, c
     assert code == 2 and "fingerprints differ" in err.replace("\n", "")
     code, _, err = run(["query", str(small_field), "mug", "--views", "all"], capsys)
     assert code == 2 and "--out" in err
+
+
+def test_eval_runs_every_protocol_of_a_synthetic_dataset(
+    small_dataset, small_field, tmp_path, capsys
+):
+    import numpy as np
+
+    from thgs.eval import matched_miou, read_lerf_labels
+    from thgs.eval.ground_truth import read_hierarchy
+    from thgs.field import load_field
+
+    out = tmp_path / "eval.json"
+    code, stdout, err = run(["eval", str(small_dataset), str(small_field), "-o", str(out)], capsys)
+    assert code == 0, err
+    report = json.loads(out.read_text())
+    protocols = [result["protocol"] for result in report["results"]]
+    assert protocols == [
+        "lerf",
+        "lerf-langsplat",
+        "lerf-opengaussian",
+        "3dovs",
+        "scannet-all",
+        "hierarchy",
+    ]
+    results = {result["protocol"]: result for result in report["results"]}
+    # every (frame, category) of the label files is scored once
+    frames = sorted((small_dataset / "label").glob("*.json"))
+    expected = [(f.stem, c) for f in frames for c in read_lerf_labels(f).categories]
+    for name in ("lerf", "lerf-langsplat", "lerf-opengaussian"):
+        assert [(i["frame"], i["prompt"]) for i in results[name]["items"]] == expected
+        assert all(0.0 <= i["iou"] <= 1.0 for i in results[name]["items"])
+    # the hierarchy protocol is the field's matched mIoU against the ground truth
+    field = load_field(small_field)
+    truth = read_hierarchy(small_dataset / "ground_truth.safetensors").labels
+    for k, name in enumerate(("subpart", "part", "object"), start=1):
+        assert results["hierarchy"]["metrics"][f"miou_{name}"] == matched_miou(
+            field.labels[:, k], truth[:, k - 1]
+        )
+    # the THGS mean is over prompts per frame, then frames
+    items = results["lerf"]["items"]
+    per_frame = [np.mean([i["iou"] for i in items if i["frame"] == f.stem]) for f in frames]
+    assert results["lerf"]["metrics"]["miou"] == pytest.approx(np.mean(per_frame))
+    assert out.with_suffix(".md").read_text().startswith("| protocol | metric |")
+    assert "lerf-langsplat" in stdout and "localization" in stdout
+
+    code, _, err = run(
+        ["eval", str(small_dataset), str(small_field), "--protocol", "scannet", "-o", str(out)],
+        capsys,
+    )
+    assert code == 0, err
+    assert [r["protocol"] for r in json.loads(out.read_text())["results"]] == ["scannet-all"]
+
+
+def test_eval_refuses_a_dataset_without_ground_truth(small_field, tmp_path, capsys):
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    code, stdout, err = run(["eval", str(empty), str(small_field)], capsys)
+    assert code == 2 and stdout == "" and "holds no benchmark ground truth" in err.replace("\n", "")
+    assert not list(tmp_path.glob("*.eval.json"))
+
+
+def test_bench_compares_variants_on_a_reduced_scene(tmp_path, capsys):
+    out = tmp_path / "bench"
+    argv = ["bench", "-o", str(out), "--presets", "synth-small", "--gaussians", "3000"]
+    argv += ["--views", "6", "--cache", str(tmp_path / "cache")]
+    argv += ["--variants", "full", "no progressive merging", "instance level only", "exact lifting"]
+    code, stdout, err = run(argv, capsys)
+    assert code == 0, err
+    assert "Paper orderings" in stdout
+    report = json.loads((out / "bench.json").read_text())
+    runs = {entry["variant"]: entry for entry in report["runs"]}
+    assert list(runs) == ["full", "no progressive merging", "instance level only", "exact lifting"]
+    # the three latent-lifting variants share one lift; exact lifting has its own
+    assert [runs[v]["lift_shared"] for v in runs] == [True, True, True, False]
+    assert runs["full"]["stages"]["lift"] == runs["instance level only"]["stages"]["lift"]
+    for entry in runs.values():
+        assert entry["gaussians"] == 3000 and entry["views"] == 6
+        assert entry["seconds"] == pytest.approx(sum(entry["stages"].values()))
+        assert 0.0 <= entry["quality"]["lerf miou"] <= 1.0
+        assert set(entry["quality"]) >= {"hierarchy miou_object", "3dovs miou", "scannet-all miou"}
+    # instance level only: one merged level copied to levels 1-3
+    counts = runs["instance level only"]["region_counts"]
+    assert counts[1] == counts[2] == counts[3]
+    assert report["orderings"][0]["variants"] == [
+        "full",
+        "no progressive merging",
+        "instance level only",
+    ]
+    assert (out / "bench-time.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    markdown = (out / "bench.md").read_text()
+    assert "| synth-small | exact lifting |" in markdown and "Paper orderings" in markdown
+    code, _, err = run(["bench", "-o", str(out), "--variants", "no such thing"], capsys)
+    assert code == 2 and "unknown 'no such thing'" in err

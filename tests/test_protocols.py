@@ -280,13 +280,20 @@ def test_scannet_scores_hand_case():
     assert perfect.miou == 1.0 and perfect.macc == 1.0
     nothing = scannet_scores(predicted, np.zeros(9, int), opacity, classes)
     assert nothing.points == 0 and np.isnan(nothing.miou) and np.isnan(nothing.macc)
+    # −1 predicts no class: point 2 (truth 1, predicted 5) becomes a plain miss of class 1,
+    # so class 5 loses its false positive: 1 / 2; class 1 keeps 2 / 5
+    unsure = predicted.copy()
+    unsure[2] = -1
+    scores = scannet_scores(unsure, truth, opacity, classes)
+    assert np.allclose(scores.iou, [1 / 2, 2 / 5, np.nan], equal_nan=True)
+    assert np.allclose(scores.accuracy, [1 / 2, 2 / 4, np.nan], equal_nan=True)
 
 
 def _brute_force_scannet(predicted, truth, opacity, classes, min_opacity=0.1):
     """OpenGaussian's rule spelled out: remap to 1…K, zero ignored points, count per class."""
     gt = np.array([classes.index(t) + 1 if t in classes else 0 for t in truth])
     gt[opacity < min_opacity] = 0
-    pred = np.array([classes.index(p) + 1 for p in predicted])
+    pred = np.array([classes.index(p) + 1 if p != -1 else -1 for p in predicted])
     pred[gt == 0] = 0
     ious, accs = [], []
     for c in range(1, len(classes) + 1):
@@ -302,7 +309,7 @@ def test_scannet_scores_matches_brute_force(seed):
     rng = np.random.default_rng(seed)
     classes = [int(c) for c in rng.choice(np.arange(1, 41), size=6, replace=False)]
     truth = rng.choice([*classes[1:], 0, 41, -1], size=300)  # classes[0] absent from the truth
-    predicted = rng.choice(classes, size=300)
+    predicted = rng.choice([*classes, -1], size=300)  # −1: no class
     agree = (rng.random(300) < 0.5) & np.isin(truth, classes)
     predicted[agree] = truth[agree]
     opacity = rng.random(300)
@@ -330,5 +337,7 @@ def test_scannet_scores_checks_inputs():
         scannet_scores(ids, ids, np.array([0.5, 1.5, 0.5]), [1, 2])
     with pytest.raises(InputError, match="min_opacity must be in"):
         scannet_scores(ids, ids, ones, [1, 2], min_opacity=float("nan"))
+    with pytest.raises(InputError, match="must not hold −1"):
+        scannet_scores(ids, ids, ones, [1, 2, -1])
     with pytest.raises(InputError, match="truth must be integer"):
         scannet_scores(ids, ids.astype(float), ones, [1, 2])

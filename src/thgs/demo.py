@@ -48,7 +48,14 @@ from thgs.synthetic import (
 from thgs.text import MINILM_SPACE, TextEncoder, load_text_encoder
 from thgs.views import selection_masks
 
-__all__ = ["DemoReport", "QueryResult", "default_cache", "demo_queries", "run_demo"]
+__all__ = [
+    "DemoReport",
+    "QueryResult",
+    "default_cache",
+    "demo_queries",
+    "run_demo",
+    "synthetic_dataset",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -203,15 +210,20 @@ def demo_queries(hierarchy: Hierarchy, objects: int = 3, parts: int = 2) -> tupl
     return tuple(object_names[:objects] + part_names[:parts])
 
 
-def _dataset(
+def synthetic_dataset(
     cache: Path,
     name: str,
     seed: int,
     gaussians: int | None,
     views: int | None,
     encoder: TextEncoder,
-    progress: Progress | None,
+    progress: Progress | None = None,
 ) -> tuple[Path, bool]:
+    """The synthetic dataset of ``name`` (a preset) and ``seed`` in ``cache``, written there
+    with oracle guidance in ``encoder``'s space if it is not yet: ``(folder, generated now)``.
+
+    ``gaussians`` and ``views`` override the preset's size (the folder name says so).
+    """
     overrides = {"seed": seed}
     tag = f"{name}-seed{seed}"
     if gaussians is not None:
@@ -299,7 +311,9 @@ def run_demo(
         raise InputError("queries", "an empty query")
     cache = Path(cache) if cache is not None else default_cache()
     encoder = load_text_encoder(MINILM_SPACE)
-    folder, generated = _dataset(cache, scene_preset, seed, gaussians, views, encoder, progress)
+    folder, generated = synthetic_dataset(
+        cache, scene_preset, seed, gaussians, views, encoder, progress
+    )
     scene = load_scene(folder)
     features_dir = folder / "language_features"
     recorded = read_embedding_space(features_dir)

@@ -38,10 +38,14 @@ from thgs.scene import Cameras, Gaussians
 __all__ = [
     "PRESETS",
     "FieldConfig",
+    "Levels",
+    "LiftedScene",
     "PartitionReport",
     "PosedScene",
     "SuperpointConfig",
     "build_field",
+    "build_levels",
+    "lift_scene",
     "partition_lifted",
     "partition_scene",
 ]
@@ -326,6 +330,128 @@ PRESETS: dict[str, Callable[[], FieldConfig]] = {
 """The named presets of ``thgs build --preset``."""
 
 
+@dataclass(frozen=True, eq=False)
+class LiftedScene:
+    """A scene's views lifted onto its Gaussians once, to build several fields from.
+
+    Attributes:
+        gaussians: the N Gaussians; cameras: the M cameras, in guidance order.
+        lifted: one :class:`thgs.lift.ViewLift` per view.
+        config: the lifting settings used.
+        views_without_masks: views whose guidance has no mask.
+        seconds: wall time of the lifting.
+    """
+
+    gaussians: Gaussians
+    cameras: Cameras
+    lifted: list[ViewLift]
+    config: LiftConfig
+    views_without_masks: int
+    seconds: float
+
+
+def lift_scene(
+    scene: PosedScene,
+    guidance: Sequence[ViewGuidance],
+    config: LiftConfig = LiftConfig(),
+    progress: Progress | None = None,
+) -> LiftedScene:
+    """Every view's masks lifted onto the Gaussians (the first stage of :func:`build_field`).
+
+    Raises:
+        InputError: the inputs :func:`partition_scene` refuses.
+    """
+    gaussians, cameras, lifted, empty, seconds = _lift_scene(scene, guidance, config, progress)
+    logger.info("lift: %d views in %.2f s", len(lifted), seconds)
+    return LiftedScene(gaussians, cameras, lifted, config, empty, seconds)
+
+
+@dataclass(frozen=True, eq=False)
+class Levels:
+    """Regions at levels 0–3 and their features, before they become a field.
+
+    Attributes:
+        labels: [N, 4] int32 region id per Gaussian at levels 0–3.
+        parents: ``parents[k - 1]`` [R_{k−1}] level-k region of each level-(k−1) region; None
+            when the levels need not nest (merge mode ``independent``).
+        features: level k at index k − 1: [R_k, D] float32 unit rows (zero rows unseen).
+        seen: level k at index k − 1: [R_k] bool.
+        timings: wall time per stage (lifting excluded).
+    """
+
+    labels: np.ndarray
+    parents: tuple[np.ndarray, np.ndarray, np.ndarray] | None
+    features: tuple[np.ndarray, np.ndarray, np.ndarray]
+    seen: tuple[np.ndarray, np.ndarray, np.ndarray]
+    timings: dict[str, float]
+
+
+def build_levels(
+    lifted: LiftedScene,
+    guidance: Sequence[ViewGuidance],
+    config: FieldConfig = FieldConfig(),
+    *,
+    progress: Progress | None = None,
+) -> Levels:
+    """Graph → reweight → partition → merge → features on views lifted by :func:`lift_scene`.
+
+    Every merge mode is allowed here, ``independent`` included (its levels need not nest).
+
+    Raises:
+        InputError: ``lifted`` was made with other lifting settings than ``config``'s, or the
+            guidance has no feature dimension.
+    """
+    if lifted.config != config.superpoints.lift:
+        raise InputError(
+            "lifted",
+            "was lifted with other settings than config.superpoints.lift; lift again "
+            "(thgs.pipeline.lift_scene) with the config's",
+        )
+    if not guidance or guidance[0].features.ndim != 2 or guidance[0].features.shape[1] < 1:
+        raise InputError("guidance", "has no mask features (need [masks, D] with D ≥ 1)")
+
+    def stage(name: str, done: int) -> None:
+        if progress is not None:
+            progress(name, done, 1)
+
+    gaussians, cameras = lifted.gaussians, lifted.cameras
+    stage("partition", 0)
+    superpoints, report = partition_lifted(gaussians, lifted.lifted, config.superpoints)
+    stage("partition", 1)
+    for name in ("knn", "votes", "reweight", "partition"):
+        logger.info("%s: %.2f s", name, report.seconds[name])
+    stage("merge", 0)
+    merged = merge_levels(gaussians, superpoints, lifted.lifted, config.merge)
+    stage("merge", 1)
+    for name, seconds in merged.seconds.items():
+        logger.info("merge %s: %.2f s", name, seconds)
+    stage("features", 0)
+    started = time.perf_counter()
+    features, seen = [], []
+    for level in (1, 2, 3):
+        rows, level_seen = region_features(
+            merged.labels[:, level],
+            level,
+            lifted.lifted,
+            guidance,
+            config.features,
+            gaussians=gaussians,
+            cameras=cameras,
+        )
+        features.append(rows)
+        seen.append(level_seen)
+    feature_seconds = time.perf_counter() - started
+    stage("features", 1)
+    logger.info("features: %.2f s", feature_seconds)
+    return Levels(
+        labels=merged.labels,
+        parents=merged.parents,
+        features=(features[0], features[1], features[2]),
+        seen=(seen[0], seen[1], seen[2]),
+        timings={**report.seconds, **merged.seconds, "features": feature_seconds},
+    )
+
+
 def build_field(
     scene: PosedScene,
     guidance: Sequence[ViewGuidance],
@@ -336,10 +462,11 @@ def build_field(
 ) -> SemanticField:
     """The semantic field of a scene: lift → graph → reweight → partition → merge → features.
 
-    Every view is lifted once; merging and features reuse the lift. Each stage is logged with
-    its wall time, and the times are stored in :attr:`SemanticField.timings` (``lift``, ``knn``,
-    ``votes``, ``reweight``, ``partition``, ``adjacency``, ``level 1`` … ``level 3``,
-    ``absorb`` when small regions are absorbed, ``features``).
+    Every view is lifted once (:func:`lift_scene`); merging and features reuse the lift
+    (:func:`build_levels`). Each stage is logged with its wall time, and the times are stored
+    in :attr:`SemanticField.timings` (``lift``, ``knn``, ``votes``, ``reweight``,
+    ``partition``, ``adjacency``, ``level 1`` … ``level 3``, ``absorb`` when small regions are
+    absorbed, ``features``).
 
     Args:
         scene: N Gaussians and M cameras (:func:`thgs.load_scene` with cameras, or a
@@ -366,63 +493,23 @@ def build_field(
         raise InputError(
             "FieldConfig.merge",
             "mode 'independent' makes levels that need not nest, and a field must nest; "
-            "run thgs.hierarchy.merge_levels directly for that ablation",
+            "run thgs.pipeline.build_levels for that ablation",
         )
     if not isinstance(space, str) or not space.strip():
         raise InputError("space", "name the embedding space of the guidance features")
     if not guidance or guidance[0].features.ndim != 2 or guidance[0].features.shape[1] < 1:
         raise InputError("guidance", "has no mask features (need [masks, D] with D ≥ 1)")
-
-    def stage(name: str, done: int) -> None:
-        if progress is not None:
-            progress(name, done, 1)
-
-    gaussians, cameras, lifted, _, lift_seconds = _lift_scene(
-        scene, guidance, config.superpoints.lift, progress
-    )
-    logger.info("lift: %d views in %.2f s", len(lifted), lift_seconds)
-    stage("partition", 0)
-    superpoints, report = partition_lifted(gaussians, lifted, config.superpoints)
-    stage("partition", 1)
-    for name in ("knn", "votes", "reweight", "partition"):
-        logger.info("%s: %.2f s", name, report.seconds[name])
-    stage("merge", 0)
-    merged = merge_levels(gaussians, superpoints, lifted, config.merge)
-    stage("merge", 1)
-    for name, seconds in merged.seconds.items():
-        logger.info("merge %s: %.2f s", name, seconds)
-    stage("features", 0)
-    started = time.perf_counter()
-    features, seen = [], []
-    for level in (1, 2, 3):
-        rows, level_seen = region_features(
-            merged.labels[:, level],
-            level,
-            lifted,
-            guidance,
-            config.features,
-            gaussians=gaussians,
-            cameras=cameras,
-        )
-        features.append(rows)
-        seen.append(level_seen)
-    feature_seconds = time.perf_counter() - started
-    stage("features", 1)
-    logger.info("features: %.2f s", feature_seconds)
-    timings = {
-        "lift": lift_seconds,
-        **report.seconds,
-        **merged.seconds,
-        "features": feature_seconds,
-    }
-    assert merged.parents is not None  # every mode but "independent" nests
+    lifted = lift_scene(scene, guidance, config.superpoints.lift, progress)
+    levels = build_levels(lifted, guidance, config, progress=progress)
+    assert levels.parents is not None  # every mode but "independent" nests
+    timings = {"lift": lifted.seconds, **levels.timings}
     result = SemanticField(
-        labels=merged.labels,
-        parents=merged.parents,
-        features=(features[0], features[1], features[2]),
-        seen=(seen[0], seen[1], seen[2]),
+        labels=levels.labels,
+        parents=levels.parents,
+        features=levels.features,
+        seen=levels.seen,
         space=space,
-        fingerprint=scene_fingerprint(gaussians),
+        fingerprint=scene_fingerprint(lifted.gaussians),
         config=config.to_json(),
         timings=timings,
     ).check("build_field")

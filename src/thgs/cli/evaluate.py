@@ -1,0 +1,104 @@
+"""``thgs eval``: score a semantic field on the benchmarks' protocols."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Literal
+
+import tyro
+from rich.table import Table
+
+from thgs.cli._console import StageBars, setup_logging, stage_progress, stdout
+from thgs.errors import InputError
+
+__all__ = ["evaluate"]
+
+Protocol = Literal["lerf", "lerf-langsplat", "lerf-opengaussian", "3dovs", "scannet", "hierarchy"]
+
+
+def _report_table(title: str, report) -> Table:
+    table = Table(title=title, title_justify="left")
+    for column in ("protocol", "metric", "value", "scored"):
+        table.add_column(column)
+    for result in report.results:
+        for name, value in result.metrics.items():
+            table.add_row(result.protocol, name, f"{value:.4f}", str(len(result.items)))
+    return table
+
+
+def evaluate(
+    dataset: Path,
+    field: Path,
+    /,
+    *,
+    protocol: tuple[Protocol, ...] = (),
+    labels: Path | None = None,
+    segmentations: Path | None = None,
+    scannet: Path | None = None,
+    scannet_level: int = 3,
+    out: Annotated[Path | None, tyro.conf.arg(aliases=("-o",))] = None,
+    scene: Path | None = None,
+    text_model: Path | None = None,
+    verbose: bool = False,
+) -> None:
+    """Score a semantic field against a benchmark's ground truth.
+
+    Runs every protocol whose ground truth is in DATASET (or those named with --protocol),
+    prints a table and writes the full report (every frame and prompt) as JSON and the table as
+    markdown beside it.
+
+    Args:
+        dataset: the scene's dataset folder: label/ (LERF-OVS), segmentations/ (3D-OVS),
+            scannet/*.labels.ply (ScanNet), ground_truth.safetensors (synthetic).
+        field: the field file (thgs build).
+        protocol: lerf (THGS: 3D selection → rendered mask), lerf-langsplat (2D relevancy maps),
+            lerf-opengaussian (silhouette > 0.7), 3dovs, scannet, hierarchy (synthetic levels);
+            default: all with ground truth.
+        labels: the LERF-OVS label folder of this scene (e.g. label/teatime), if not in DATASET.
+        segmentations: the 3D-OVS segmentations folder, if not DATASET/segmentations.
+        scannet: the ScanNet label PLY (<scene>_vh_clean_2.labels.ply), if not in DATASET.
+        scannet_level: the field level whose features classify ScanNet points (3: objects).
+        out: the JSON report (default: <field>.eval.json); the table goes to the same name .md.
+        scene: the scene the field was built on, if not where the field says.
+        text_model: a local folder with the text model, instead of the default location.
+        verbose: log what is loaded and how long it takes.
+    """
+    from thgs._atomic import atomic_output
+    from thgs.eval.dataset import evaluate_dataset, find_ground_truth
+    from thgs.eval.segmenter import Regions, Segmenter
+    from thgs.export import write_json
+    from thgs.field_scene import open_field_scene
+    from thgs.text import load_text_encoder
+
+    setup_logging(verbose)
+    ground_truth = find_ground_truth(
+        dataset, lerf=labels, three_dovs=segmentations, scannet=scannet
+    )
+    if not protocol and not ground_truth.available():
+        raise InputError(
+            dataset,
+            "holds no benchmark ground truth (label/*.json, segmentations/, "
+            "scannet/*.labels.ply, ground_truth.safetensors); name it with --labels, "
+            "--segmentations or --scannet",
+        )
+    semantic, loaded = open_field_scene(field, scene)
+    encoder = load_text_encoder(semantic.space, model_path=text_model)
+    segmenter = Segmenter(Regions.from_field(semantic), encoder, source=str(field))
+    with stage_progress() as bar:
+        report = evaluate_dataset(
+            ground_truth,
+            segmenter,
+            loaded.gaussians,
+            loaded.cameras,
+            protocols=protocol or None,
+            scannet_level=scannet_level,
+            progress=StageBars(bar),
+        )
+    out = out if out is not None else field.with_suffix(".eval.json")
+    document = report.to_json()
+    document["info"] = {**document["info"], "dataset": str(dataset), "field": str(field)}
+    write_json(out, document)
+    with atomic_output(out.with_suffix(".md"), "w") as handle:
+        handle.write(report.table() + "\n")
+    stdout.print(_report_table(f"{ground_truth.scene_name}: {field.name}", report))
+    stdout.print(f"report: {out} (table: {out.with_suffix('.md')})")

@@ -1,0 +1,488 @@
+"""The benchmark protocols run on a segmentation of one scene (design §6).
+
+Each ``evaluate_*`` function takes a :class:`thgs.eval.Segmenter` (text → Gaussians), the
+scene's Gaussians and cameras, and the benchmark's ground truth as the readers in
+:mod:`thgs.eval` return it, and gives a :class:`ProtocolResult`: the protocol's headline
+numbers and one item per scored (frame, prompt), (view, class) or class, so that every number
+can be traced. The per-image and per-point rules are in :mod:`thgs.eval.protocols`.
+
+- ``lerf`` (THGS / P-3D): the reference selection (levels 2 and 3, top 3 each, best 3 kept)
+  rendered as accumulated opacity and thresholded at 0.5, against the union of the category's
+  polygons; IoU and pixel accuracy averaged over the prompts of a frame, then over frames.
+- ``lerf-opengaussian``: the same with the silhouette threshold 0.7, prompts restricted to
+  OpenGaussian's lists when the scene is one of its four; flat means over (frame, prompt).
+- ``lerf-langsplat`` (P-2D): per level the rendered relevancy map, LangSplat's smoothing,
+  normalization and threshold, the level with the highest smoothed peak; mIoU and localization
+  accuracy as flat means over (frame, prompt).
+- ``3dovs``: the ``lerf`` rule on 3D-OVS's per-class masks; "wood wall" is queried as "wood".
+- ``scannet``: every Gaussian classified by the best-matching class text; mIoU and mAcc per
+  class subset.
+- ``hierarchy`` (synthetic): matched-region mIoU of levels 1–3 against the ground-truth
+  sub-parts, parts and objects, and superpoint purity.
+
+Masks are rendered at the camera's resolution; LERF polygons and boxes are scaled from the label
+resolution to it. 3D-OVS masks cannot be rescaled without loss, so those views are rendered at
+the masks' resolution (intrinsics scaled per axis).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from thgs.errors import InputError
+from thgs.eval.ground_truth import HIERARCHY_LEVELS, Hierarchy
+from thgs.eval.lerf_ovs import FrameLabels, read_lerf_labels
+from thgs.eval.metrics import matched_miou, purity
+from thgs.eval.protocols import (
+    OPENGAUSSIAN_LERF_PROMPTS,
+    OPENGAUSSIAN_THRESHOLD,
+    langsplat_level,
+    langsplat_localized,
+    langsplat_mask,
+    mask_iou,
+    pixel_accuracy,
+    scannet_scores,
+)
+from thgs.eval.scannet import (
+    SCANNET10_IDS,
+    SCANNET15_IDS,
+    SCANNET19_IDS,
+    SCANNET19_NAMES,
+    PointLabels,
+)
+from thgs.eval.segmenter import Segmenter
+from thgs.eval.three_dovs import SegmentationSet, query_text
+from thgs.render import RasterConfig
+from thgs.scene import Cameras, Gaussians
+from thgs.views import relevancy_map, selection_masks
+
+__all__ = [
+    "ProtocolResult",
+    "evaluate_3dovs",
+    "evaluate_hierarchy",
+    "evaluate_lerf",
+    "evaluate_lerf_langsplat",
+    "evaluate_lerf_opengaussian",
+    "evaluate_scannet",
+    "frame_mean",
+    "opengaussian_prompts",
+    "read_lerf_frames",
+    "scannet_subsets",
+]
+
+logger = logging.getLogger(__name__)
+
+Progress = Callable[[int, int], None]
+
+
+@dataclass(frozen=True)
+class ProtocolResult:
+    """The scores of one protocol on one scene.
+
+    Attributes:
+        protocol: its name (``lerf``, ``lerf-langsplat``, ``lerf-opengaussian``, ``3dovs``,
+            ``scannet-19`` …, ``hierarchy``).
+        metrics: the headline numbers, in [0, 1] (e.g. ``miou``, ``accuracy``).
+        items: one JSON-ready dict per scored unit: ``{"frame", "prompt", "iou", ...}``.
+        settings: what the protocol was run with (thresholds, levels, prompt lists).
+    """
+
+    protocol: str
+    metrics: dict[str, float]
+    items: list[dict[str, Any]] = field(default_factory=list)
+    settings: dict[str, Any] = field(default_factory=dict)
+
+    def to_json(self) -> dict[str, Any]:
+        """JSON values; NaN (a class absent from the ground truth) becomes null."""
+        return {
+            "protocol": self.protocol,
+            "metrics": _finite(self.metrics),
+            "settings": self.settings,
+            "items": [_finite(item) for item in self.items],
+        }
+
+
+def _finite(values: Mapping[str, Any]) -> dict[str, Any]:
+    return {
+        key: None if isinstance(value, float) and not math.isfinite(value) else value
+        for key, value in values.items()
+    }
+
+
+def frame_mean(items: Sequence[Mapping[str, Any]], key: str, group: str = "frame") -> float:
+    """Mean over groups (frames, views) of the mean of ``key`` over each group's items: the
+    THGS averaging, so a frame with many prompts weighs as much as one with few. NaN if empty."""
+    groups: dict[Any, list[float]] = {}
+    for item in items:
+        groups.setdefault(item[group], []).append(float(item[key]))
+    if not groups:
+        return float("nan")
+    return float(np.mean([np.mean(values) for values in groups.values()]))
+
+
+def read_lerf_frames(folder: str | os.PathLike[str]) -> list[tuple[str, FrameLabels]]:
+    """Every ``*.json`` label file of one LERF-OVS scene as ``(stem, labels)``, by file name.
+
+    The stem (``frame_00053``) names the view the frame belongs to.
+
+    Raises:
+        InputError: the folder is missing or holds no JSON file, or a file is malformed.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise InputError(folder, "LERF-OVS label folder not found")
+    paths = sorted(p for p in folder.iterdir() if p.suffix == ".json" and p.is_file())
+    if not paths:
+        raise InputError(folder, "holds no LERF-OVS label files (frame_XXXXX.json)")
+    return [(path.stem, read_lerf_labels(path)) for path in paths]
+
+
+def _view(cameras: Cameras, name: str, source: str) -> int:
+    for i, (stem, full) in enumerate(zip(cameras.stems, cameras.names)):
+        if name in (stem, full):
+            return i
+    raise InputError(source, f"names view {name!r}, which the scene's cameras do not have")
+
+
+def _lerf_prompts(frame: FrameLabels, prompts: Sequence[str] | None) -> list[str]:
+    categories = list(frame.categories)
+    return categories if prompts is None else [c for c in categories if c in prompts]
+
+
+def evaluate_lerf(
+    segmenter: Segmenter,
+    gaussians: Gaussians,
+    cameras: Cameras,
+    frames: Sequence[tuple[str, FrameLabels]],
+    *,
+    protocol: str = "lerf",
+    mask_threshold: float = 0.5,
+    prompts: Sequence[str] | None = None,
+    raster: RasterConfig = RasterConfig(),
+    progress: Progress | None = None,
+) -> ProtocolResult:
+    """The THGS LERF-OVS protocol (``lerf``), or OpenGaussian's with ``mask_threshold`` 0.7.
+
+    Args:
+        segmenter: text → selected Gaussians (its config is the selection rule).
+        gaussians: the N Gaussians the segmenter indexes.
+        cameras: the scene's cameras; frame ``stem`` is the camera of that image stem.
+        frames: ``(stem, labels)`` per evaluated frame (:func:`read_lerf_frames`).
+        protocol: the name recorded in the result.
+        mask_threshold: rendered opacity above which a pixel is predicted.
+        prompts: evaluate only these categories (OpenGaussian's lists); default all.
+
+    Returns:
+        metrics ``miou`` and ``accuracy`` (pixel accuracy), each the mean over frames of the
+        mean over the frame's prompts; one item per (frame, prompt).
+    """
+    items = []
+    for done, (stem, frame) in enumerate(frames):
+        texts = _lerf_prompts(frame, prompts)
+        if texts:
+            camera = cameras.select([_view(cameras, stem, f"label file {stem}.json")])
+            height, width = int(camera.heights[0]), int(camera.widths[0])
+            selected = segmenter.select(texts)
+            masks = selection_masks(
+                gaussians, camera, selected, threshold=mask_threshold, config=raster
+            )
+            for q, text in enumerate(texts):
+                truth = frame.category_mask(text, height, width)
+                items.append(
+                    {
+                        "frame": stem,
+                        "prompt": text,
+                        "iou": mask_iou(masks[..., q], truth),
+                        "accuracy": pixel_accuracy(masks[..., q], truth),
+                        "predicted_pixels": int(masks[..., q].sum()),
+                        "truth_pixels": int(truth.sum()),
+                    }
+                )
+        if progress is not None:
+            progress(done + 1, len(frames))
+    return ProtocolResult(
+        protocol,
+        {"miou": frame_mean(items, "iou"), "accuracy": frame_mean(items, "accuracy")},
+        items,
+        {
+            "selection": segmenter.config.mode,
+            "mask_threshold": mask_threshold,
+            "prompts": None if prompts is None else list(prompts),
+        },
+    )
+
+
+def evaluate_lerf_langsplat(
+    segmenter: Segmenter,
+    gaussians: Gaussians,
+    cameras: Cameras,
+    frames: Sequence[tuple[str, FrameLabels]],
+    *,
+    levels: tuple[int, ...] = (1, 2, 3),
+    mask_threshold: float = 0.4,
+    raster: RasterConfig = RasterConfig(),
+    progress: Progress | None = None,
+) -> ProtocolResult:
+    """LangSplat's 2D LERF-OVS protocol on rendered relevancy maps.
+
+    Per frame and prompt, each level's per-Gaussian relevancy is rendered into the view
+    (:func:`thgs.views.relevancy_map`); :func:`thgs.eval.protocols.langsplat_level` chooses a
+    level, :func:`~thgs.eval.protocols.langsplat_mask` makes its mask, and
+    :func:`~thgs.eval.protocols.langsplat_localized` checks the peak against the boxes.
+
+    Returns:
+        metrics ``miou`` (flat mean over (frame, prompt)) and ``localization`` (share of
+        prompts whose peak lies in one of the category's boxes); one item per (frame, prompt).
+    """
+    items = []
+    for done, (stem, frame) in enumerate(frames):
+        texts = list(frame.categories)
+        camera = cameras.select([_view(cameras, stem, f"label file {stem}.json")])
+        height, width = int(camera.heights[0]), int(camera.widths[0])
+        per_gaussian = np.concatenate([segmenter.relevancy(texts, k) for k in levels], axis=1)
+        maps = relevancy_map(gaussians, camera, per_gaussian, config=raster)  # [H, W, L·Q]
+        maps = maps.reshape(height, width, len(levels), len(texts))
+        sx, sy = width / frame.width, height / frame.height
+        for q, text in enumerate(texts):
+            stack = np.moveaxis(maps[:, :, :, q], 2, 0)
+            chosen = langsplat_level(stack)
+            predicted = langsplat_mask(stack[chosen], threshold=mask_threshold)
+            truth = frame.category_mask(text, height, width)
+            boxes = [
+                (x1 * sx, y1 * sy, x2 * sx, y2 * sy)
+                for x1, y1, x2, y2 in frame.category_boxes(text)
+            ]
+            items.append(
+                {
+                    "frame": stem,
+                    "prompt": text,
+                    "level": levels[chosen],
+                    "iou": mask_iou(predicted, truth),
+                    "localized": bool(langsplat_localized(stack, boxes)),
+                }
+            )
+        if progress is not None:
+            progress(done + 1, len(frames))
+    flat = [item["iou"] for item in items]
+    hits = [item["localized"] for item in items]
+    return ProtocolResult(
+        "lerf-langsplat",
+        {
+            "miou": float(np.mean(flat)) if flat else float("nan"),
+            "localization": float(np.mean(hits)) if hits else float("nan"),
+        },
+        items,
+        {"levels": list(levels), "mask_threshold": mask_threshold},
+    )
+
+
+def opengaussian_prompts(scene_name: str) -> tuple[str, ...] | None:
+    """OpenGaussian's fixed LERF-OVS prompts of ``scene_name`` (None for other scenes)."""
+    return OPENGAUSSIAN_LERF_PROMPTS.get(scene_name)
+
+
+def evaluate_lerf_opengaussian(
+    segmenter: Segmenter,
+    gaussians: Gaussians,
+    cameras: Cameras,
+    frames: Sequence[tuple[str, FrameLabels]],
+    *,
+    scene_name: str = "",
+    raster: RasterConfig = RasterConfig(),
+    progress: Progress | None = None,
+) -> ProtocolResult:
+    """OpenGaussian's LERF-OVS protocol (``compute_lerf_iou.py``, docs/protocols.md).
+
+    The ``lerf`` rule with silhouettes above 0.7. For its four scenes (figurines, ramen,
+    teatime, waldo_kitchen) only its fixed prompts are queried, and a labelled category outside
+    them scores 0, as there. Averages are flat over (frame, prompt).
+
+    Returns:
+        metrics ``miou`` and ``acc@0.25`` / ``acc@0.5`` (share of (frame, prompt) pairs whose
+        IoU exceeds 0.25 / 0.5); one item per (frame, category).
+    """
+    prompts = opengaussian_prompts(scene_name)
+    result = evaluate_lerf(
+        segmenter,
+        gaussians,
+        cameras,
+        frames,
+        protocol="lerf-opengaussian",
+        mask_threshold=OPENGAUSSIAN_THRESHOLD,
+        prompts=prompts,
+        raster=raster,
+        progress=progress,
+    )
+    scored = {(item["frame"], item["prompt"]): item for item in result.items}
+    items = [
+        scored.get((stem, category), {"frame": stem, "prompt": category, "iou": 0.0})
+        for stem, frame in frames
+        for category in frame.categories
+    ]
+    ious = np.array([item["iou"] for item in items])
+    metrics = {
+        "miou": float(ious.mean()) if ious.size else float("nan"),
+        "acc@0.25": float((ious > 0.25).mean()) if ious.size else float("nan"),
+        "acc@0.5": float((ious > 0.5).mean()) if ious.size else float("nan"),
+    }
+    return ProtocolResult("lerf-opengaussian", metrics, items, result.settings)
+
+
+def evaluate_3dovs(
+    segmenter: Segmenter,
+    gaussians: Gaussians,
+    cameras: Cameras,
+    segmentations: SegmentationSet,
+    *,
+    mask_threshold: float = 0.5,
+    raster: RasterConfig = RasterConfig(),
+    progress: Progress | None = None,
+) -> ProtocolResult:
+    """The THGS rule on 3D-OVS: every class mask of every annotated view.
+
+    View ``"03"`` is camera 3 (3D-OVS numbers views by image index). Each class is queried with
+    :func:`thgs.eval.query_text` ("wood wall" → "wood").
+
+    Returns:
+        metrics ``miou`` and ``accuracy``, means over views of the means over their classes.
+    """
+    items = []
+    views = list(segmentations.views.items())
+    for done, (view, masks) in enumerate(views):
+        if not view.isdigit() or int(view) >= len(cameras):
+            raise InputError(
+                f"segmentations/{view}",
+                f"names no camera index (the scene has {len(cameras)} cameras)",
+            )
+        classes = list(masks)
+        if classes:
+            height, width = masks[classes[0]].shape
+            camera = cameras.select([int(view)]).resized([width], [height])
+            selected = segmenter.select([query_text(name) for name in classes])
+            predicted = selection_masks(
+                gaussians, camera, selected, threshold=mask_threshold, config=raster
+            )
+            for q, name in enumerate(classes):
+                items.append(
+                    {
+                        "frame": view,
+                        "prompt": name,
+                        "query": query_text(name),
+                        "iou": mask_iou(predicted[..., q], masks[name]),
+                        "accuracy": pixel_accuracy(predicted[..., q], masks[name]),
+                    }
+                )
+        if progress is not None:
+            progress(done + 1, len(views))
+    return ProtocolResult(
+        "3dovs",
+        {"miou": frame_mean(items, "iou"), "accuracy": frame_mean(items, "accuracy")},
+        items,
+        {"selection": segmenter.config.mode, "mask_threshold": mask_threshold},
+    )
+
+
+def scannet_subsets(labels: PointLabels) -> dict[str, tuple[int, ...]]:
+    """The class subsets to evaluate: 19 / 15 / 10 for ScanNet's NYU40 labels, else every class
+    of the label table (``all``)."""
+    if dict(labels.class_names) == dict(SCANNET19_NAMES):
+        return {"19": SCANNET19_IDS, "15": SCANNET15_IDS, "10": SCANNET10_IDS}
+    return {"all": tuple(sorted(labels.class_names))}
+
+
+def evaluate_scannet(
+    segmenter: Segmenter,
+    gaussians: Gaussians,
+    labels: PointLabels,
+    *,
+    subsets: Mapping[str, Sequence[int]] | None = None,
+    level: int = 3,
+    min_opacity: float = 0.1,
+) -> list[ProtocolResult]:
+    """OpenGaussian's ScanNet protocol: Gaussian i is scan point i.
+
+    Each Gaussian takes the class (of the subset) whose name's embedding is closest to its
+    level-``level`` region feature; Gaussians of unseen regions predict no class (a miss).
+
+    Args:
+        labels: the scan's per-point labels; N must equal the number of Gaussians.
+        subsets: name → class ids; default :func:`scannet_subsets`.
+        level: the field level whose features classify (3: objects).
+        min_opacity: Gaussians below this activated opacity are not evaluated.
+
+    Returns:
+        one result per subset (``scannet-19`` …) with ``miou`` and ``macc``, one item per class.
+    """
+    if len(labels.labels) != len(gaussians):
+        raise InputError(
+            "ScanNet labels",
+            f"{len(labels.labels)} points for {len(gaussians)} Gaussians: the protocol needs "
+            "Gaussian i to be scan point i",
+        )
+    opacity = gaussians.activated_opacities().detach().cpu().numpy().astype(np.float64)
+    results = []
+    for name, ids in (subsets or scannet_subsets(labels)).items():
+        ids = tuple(int(i) for i in ids)
+        missing = [i for i in ids if i not in labels.class_names]
+        if missing:
+            raise InputError("ScanNet labels", f"subset {name}: classes {missing} have no name")
+        best = segmenter.classify([labels.class_names[i] for i in ids], level)
+        predicted = np.where(best >= 0, np.asarray(ids)[np.maximum(best, 0)], -1)
+        scores = scannet_scores(predicted, labels.labels, opacity, ids, min_opacity=min_opacity)
+        items = [
+            {
+                "class": i,
+                "name": labels.class_names[i],
+                "iou": float(scores.iou[k]),
+                "accuracy": float(scores.accuracy[k]),
+            }
+            for k, i in enumerate(scores.classes)
+        ]
+        results.append(
+            ProtocolResult(
+                f"scannet-{name}",
+                {"miou": scores.miou, "macc": scores.macc},
+                items,
+                {"level": level, "min_opacity": min_opacity, "points": scores.points},
+            )
+        )
+    return results
+
+
+def evaluate_hierarchy(labels: np.ndarray, hierarchy: Hierarchy) -> ProtocolResult:
+    """Agreement of regions at levels 0–3 ([N, 4]) with a ground-truth hierarchy.
+
+    Returns:
+        metrics ``miou_subpart``, ``miou_part``, ``miou_object`` (level k against ground-truth
+        level k: :func:`thgs.eval.matched_miou`) and ``purity`` (level-0 superpoints against
+        sub-parts); one item per level with the region and node counts.
+    """
+    labels = np.asarray(labels)
+    if labels.ndim != 2 or labels.shape != (len(hierarchy), 4):
+        raise InputError(
+            "labels", f"must be [{len(hierarchy)}, 4] for this hierarchy, got {list(labels.shape)}"
+        )
+    truth = hierarchy.labels
+    metrics, items = {}, []
+    for k, name in enumerate(HIERARCHY_LEVELS, start=1):
+        score = matched_miou(labels[:, k], truth[:, k - 1])
+        metrics[f"miou_{name}"] = score
+        items.append(
+            {
+                "level": k,
+                "truth": name,
+                "miou": score,
+                "regions": int(labels[:, k].max()) + 1,
+                "nodes": len(hierarchy.names[k - 1]),
+            }
+        )
+    metrics["purity"] = purity(labels[:, 0], truth[:, 0])
+    return ProtocolResult("hierarchy", metrics, items, {"superpoints": int(labels[:, 0].max()) + 1})
