@@ -384,6 +384,23 @@ def test_eval_runs_every_protocol_of_a_synthetic_dataset(
     assert code == 0, err
     assert [r["protocol"] for r in json.loads(out.read_text())["results"]] == ["scannet-all"]
 
+    # eval-mean: the last averaging step, over scenes (here the report and an altered copy)
+    first = json.loads(out.read_text())
+    second = json.loads(out.read_text())
+    second["results"][0]["metrics"]["miou"] = 0.25
+    paths = [tmp_path / "a.json", tmp_path / "b.json"]
+    for path, document in zip(paths, (first, second)):
+        path.write_text(json.dumps(document))
+    means = tmp_path / "means.json"
+    code, stdout, err = run(["eval-mean", *map(str, paths), "-o", str(means)], capsys)
+    assert code == 0, err
+    expected = (first["results"][0]["metrics"]["miou"] + 0.25) / 2
+    assert json.loads(means.read_text())["means"]["scannet-all"]["miou"] == pytest.approx(expected)
+    paths[1].write_text("[1, 2]")
+    code, _, err = run(["eval-mean", *map(str, paths)], capsys)
+    err = err.replace("\n", "")  # rich wraps long lines
+    assert code == 2 and "is not a thgs eval report" in err and str(paths[1]) in err
+
 
 def test_eval_refuses_a_dataset_without_ground_truth(small_field, tmp_path, capsys):
     empty = tmp_path / "empty"

@@ -147,7 +147,21 @@ def test_lerf_perfect_selection_scores_one_and_reference_pools_both(scene):
     assert result.metrics["miou"] == pytest.approx(np.mean(list(expected_iou.values())))
 
 
-def test_lerf_empty_prediction_scores_zero(scene):
+def test_lerf_category_of_several_polygons_is_their_union(scene):
+    gaussians, cameras = scene
+    masks = _truth_masks(gaussians, cameras)
+    # "mug" labels both patches (two objects, two polygons); the threshold mode selects every
+    # region above a tiny relevancy, i.e. both patches: exactly the union
+    frame = _frame({"mug": masks[..., 0] | masks[..., 1]})
+    assert len(frame.objects) == 2
+    both = Segmenter(
+        _regions(), _TableEncoder(), QueryConfig(mode="threshold", level=3, threshold=1e-6)
+    )
+    result = evaluate_lerf(both, gaussians, cameras, [("frame_00001", frame)])
+    assert result.metrics == {"miou": 1.0, "accuracy": 1.0}
+
+
+def test_empty_prediction_scores_zero_under_every_mask_protocol(scene):
     gaussians, cameras = scene
     masks = _truth_masks(gaussians, cameras)
     frames = [("frame_00001", _frame({"mug": masks[..., 0]}))]
@@ -155,6 +169,11 @@ def test_lerf_empty_prediction_scores_zero(scene):
     result = evaluate_lerf(unseen, gaussians, cameras, frames)
     assert result.metrics["miou"] == 0.0
     assert result.items[0]["predicted_pixels"] == 0
+    result = evaluate_lerf_opengaussian(unseen, gaussians, cameras, frames)
+    assert result.metrics == {"miou": 0.0, "acc@0.25": 0.0, "acc@0.5": 0.0}
+    views = {"00": {"mug": masks[..., 0]}}
+    result = evaluate_3dovs(unseen, gaussians, cameras, SegmentationSet(("mug",), views))
+    assert result.metrics == {"miou": 0.0, "accuracy": pytest.approx(1 - masks[..., 0].mean())}
 
 
 def test_opengaussian_thresholds_the_silhouette_at_07(scene):

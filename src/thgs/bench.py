@@ -445,7 +445,9 @@ class BenchReport:
             merge = [s for s in run.stages if s == "adjacency" or s.startswith("level")]
             merge += ["absorb"]
             lift = f"{stage_sum(['lift']):.1f}" + (" (shared)" if run.lift_shared else "")
-            counts = " / ".join(str(c) for c in run.region_counts)
+            counts = " / ".join(
+                f"{np.mean([r.region_counts[k] for r in group]):.0f}" for k in range(4)
+            )
             lines.append(
                 f"| {preset} | {variant} | {self.mean(preset, variant, 'seconds'):.1f} "
                 f"| {lift} | {stage_sum(['knn', 'votes', 'reweight', 'partition']):.1f} "
@@ -478,7 +480,7 @@ class BenchReport:
         pyplot = require_matplotlib()
         rows = _mean_rows(self.runs)
         stages = list(dict.fromkeys(s for run in self.runs for s in run.stages))
-        figure, axis = pyplot.subplots(figsize=(10, 0.45 * len(rows) + 1.8))
+        figure, axis = pyplot.subplots(figsize=(11, 0.45 * len(rows) + 1.8))
         labels = [f"{preset}: {variant}" for preset, variant, _, _ in rows]
         left = np.zeros(len(rows))
         colors = pyplot.get_cmap("tab20")
@@ -500,7 +502,7 @@ class BenchReport:
         axis.invert_yaxis()
         axis.set_xlabel("seconds")
         axis.set_title("build time per stage")
-        axis.legend(ncol=4, fontsize="small", loc="lower right")
+        axis.legend(fontsize="small", loc="center left", bbox_to_anchor=(1.01, 0.5))
         figure.tight_layout()
         with atomic_output(path, "wb") as handle:
             figure.savefig(handle, format="png", dpi=120)

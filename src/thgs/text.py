@@ -136,7 +136,10 @@ class MiniLMEncoder:
         for text in dict.fromkeys(texts):
             if text not in self._cache:
                 vector = self._model.encode(
-                    [text], normalize_embeddings=True, convert_to_numpy=True
+                    [text],
+                    normalize_embeddings=True,
+                    convert_to_numpy=True,
+                    show_progress_bar=False,  # library code shows no progress bars
                 )[0]
                 self._cache[text] = vector.astype(np.float32)
         if not texts:

@@ -9,7 +9,7 @@ import tyro
 from thgs.cli._console import stderr
 from thgs.cli.bench import bench
 from thgs.cli.build import build, demo
-from thgs.cli.evaluate import evaluate
+from thgs.cli.evaluate import evaluate, evaluate_mean
 from thgs.cli.query import export, pick, query
 from thgs.cli.scene import info, synth
 from thgs.errors import ThgsError
@@ -20,6 +20,7 @@ __all__ = [
     "demo",
     "entrypoint",
     "evaluate",
+    "evaluate_mean",
     "export",
     "info",
     "pick",
@@ -39,6 +40,7 @@ def entrypoint(argv: list[str] | None = None) -> None:
                 "pick": pick,
                 "export": export,
                 "eval": evaluate,
+                "eval-mean": evaluate_mean,
                 "info": info,
                 "bench": bench,
                 "synth": synth,

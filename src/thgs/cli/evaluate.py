@@ -11,7 +11,7 @@ from rich.table import Table
 from thgs.cli._console import StageBars, setup_logging, stage_progress, stdout
 from thgs.errors import InputError
 
-__all__ = ["evaluate"]
+__all__ = ["evaluate", "evaluate_mean"]
 
 Protocol = Literal["lerf", "lerf-langsplat", "lerf-opengaussian", "3dovs", "scannet", "hierarchy"]
 
@@ -102,3 +102,41 @@ def evaluate(
         handle.write(report.table() + "\n")
     stdout.print(_report_table(f"{ground_truth.scene_name}: {field.name}", report))
     stdout.print(f"report: {out} (table: {out.with_suffix('.md')})")
+
+
+def evaluate_mean(
+    reports: tuple[Path, ...],
+    /,
+    *,
+    out: Annotated[Path | None, tyro.conf.arg(aliases=("-o",))] = None,
+) -> None:
+    """Average thgs eval reports of several scenes: every protocol's metrics, mean over scenes.
+
+    The last step of the protocols' averaging (LERF-OVS: prompts → frames → scenes), to put
+    beside published numbers.
+
+    Args:
+        reports: one thgs eval JSON report per scene.
+        out: also write the means as JSON.
+    """
+    from thgs.eval.dataset import mean_over_scenes
+    from thgs.export import write_json
+    from thgs.scene._json import load_json
+
+    if not reports:
+        raise InputError("thgs eval-mean", "give one report per scene")
+    documents = [load_json(path) for path in reports]
+    for path, document in zip(reports, documents):
+        if not isinstance(document, dict) or not isinstance(document.get("results"), list):
+            raise InputError(path, "is not a thgs eval report (no 'results' list)")
+    means = mean_over_scenes(documents)
+    table = Table(title=f"mean over {len(reports)} scenes", title_justify="left")
+    for column in ("protocol", "metric", "mean"):
+        table.add_column(column)
+    for protocol, metrics in means.items():
+        for name, value in metrics.items():
+            table.add_row(protocol, name, f"{value:.4f}")
+    stdout.print(table)
+    if out is not None:
+        write_json(out, {"scenes": [str(p) for p in reports], "means": means})
+        stdout.print(f"wrote {out}")

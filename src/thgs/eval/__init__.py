@@ -87,6 +87,7 @@ __all__ = [
     "mask_iou",
     "mask_to_polygons",
     "matched_miou",
+    "mean_over_scenes",
     "pixel_accuracy",
     "purity",
     "query_text",

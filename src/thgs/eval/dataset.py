@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -45,7 +45,14 @@ from thgs.eval.segmenter import Segmenter
 from thgs.eval.three_dovs import read_3dovs_segmentations
 from thgs.scene import Cameras, Gaussians
 
-__all__ = ["PROTOCOLS", "EvalReport", "GroundTruth", "evaluate_dataset", "find_ground_truth"]
+__all__ = [
+    "PROTOCOLS",
+    "EvalReport",
+    "GroundTruth",
+    "evaluate_dataset",
+    "find_ground_truth",
+    "mean_over_scenes",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -203,7 +210,8 @@ def evaluate_dataset(
             raise InputError("protocol", f"{name} renders views, but the scene has no cameras")
     results: list[ProtocolResult] = []
     seconds: dict[str, float] = {}
-    frames = read_lerf_frames(ground_truth.lerf) if ground_truth.lerf is not None else []
+    wants_lerf = any(name.startswith("lerf") for name in protocols)
+    frames = read_lerf_frames(ground_truth.lerf) if wants_lerf and ground_truth.lerf else []
     for name in [p for p in PROTOCOLS if p in protocols]:
         started = time.perf_counter()
 
@@ -257,3 +265,32 @@ def evaluate_dataset(
         },
     }
     return EvalReport(tuple(results), seconds, info)
+
+
+def mean_over_scenes(reports: Sequence[Mapping[str, Any]]) -> dict[str, dict[str, float]]:
+    """The last step of every protocol's averaging: each metric's mean over scenes.
+
+    Args:
+        reports: :meth:`EvalReport.to_json` documents (e.g. read from ``thgs eval`` reports),
+            one per scene.
+
+    Returns:
+        protocol → metric → mean over the scenes that report it (null metrics are skipped).
+
+    Raises:
+        InputError: a document that is not a ``thgs eval`` report.
+    """
+    values: dict[str, dict[str, list[float]]] = {}
+    for index, report in enumerate(reports):
+        results = report.get("results") if isinstance(report, Mapping) else None
+        if not isinstance(results, list):
+            raise InputError(f"report {index}", "is not a thgs eval report (no 'results' list)")
+        for result in results:
+            metrics = values.setdefault(result["protocol"], {})
+            for name, value in result["metrics"].items():
+                if value is not None:
+                    metrics.setdefault(name, []).append(float(value))
+    return {
+        protocol: {name: float(np.mean(v)) for name, v in metrics.items()}
+        for protocol, metrics in values.items()
+    }
