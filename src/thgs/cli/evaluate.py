@@ -27,8 +27,8 @@ def _report_table(title: str, report) -> Table:
 
 
 def evaluate(
-    dataset: Path,
-    field: Path,
+    dataset: Annotated[Path, tyro.conf.arg(metavar="DATASET")],
+    field: Annotated[Path, tyro.conf.arg(metavar="FIELD")],
     /,
     *,
     protocol: tuple[Protocol, ...] = (),
@@ -105,7 +105,7 @@ def evaluate(
 
 
 def evaluate_mean(
-    reports: tuple[Path, ...],
+    reports: Annotated[tuple[Path, ...], tyro.conf.arg(metavar="REPORT")],
     /,
     *,
     out: Annotated[Path | None, tyro.conf.arg(aliases=("-o",))] = None,
