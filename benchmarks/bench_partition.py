@@ -17,11 +17,8 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import subprocess
 import sys
-import threading
-import time
 import zlib
 from collections.abc import Callable
 from dataclasses import replace
@@ -29,6 +26,7 @@ from dataclasses import replace
 import numpy as np
 import torch
 
+from thgs.bench import measured as measure
 from thgs.eval import purity
 from thgs.graph import ReweightConfig, edge_counts, knn_graph, partition, reweight
 from thgs.lift import lift_views
@@ -48,28 +46,10 @@ class HashEncoder:
         return (rows / np.linalg.norm(rows, axis=1, keepdims=True)).astype(np.float32)
 
 
-def _rss_bytes() -> int:
-    with open("/proc/self/statm") as handle:
-        return int(handle.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
-
-
 def measured(function: Callable, *args):
-    """``(result, seconds, peak RSS in GiB while it ran)``."""
-    peak = [_rss_bytes()]
-    done = threading.Event()
-
-    def sample() -> None:
-        while not done.wait(0.005):
-            peak[0] = max(peak[0], _rss_bytes())
-
-    sampler = threading.Thread(target=sample, daemon=True)
-    sampler.start()
-    started = time.perf_counter()
-    result = function(*args)
-    seconds = time.perf_counter() - started
-    done.set()
-    sampler.join()
-    return result, round(seconds, 2), round(max(peak[0], _rss_bytes()) / 2**30, 2)
+    """``(result, seconds, peak RSS GiB while it ran)``, rounded: :func:`thgs.bench.measured`."""
+    result, seconds, peak_gib, _ = measure(lambda: function(*args))
+    return result, round(seconds, 2), round(peak_gib, 2)
 
 
 def graph_stages(gaussians, lifted, config: SuperpointConfig) -> tuple[np.ndarray, dict]:

@@ -35,14 +35,13 @@ import numpy as np
 import torch
 
 from thgs._atomic import atomic_output
-from thgs.demo import default_cache, synthetic_dataset
+from thgs.demo import default_cache, open_synthetic_dataset, synthetic_dataset
 from thgs.errors import InputError, ThgsError
 from thgs.eval.dataset import evaluate_dataset, find_ground_truth
 from thgs.eval.segmenter import Regions, Segmenter
 from thgs.export import write_json
-from thgs.guidance import load_guidance, read_embedding_space
+from thgs.lift import LiftConfig
 from thgs.pipeline import FieldConfig, build_levels, lift_scene
-from thgs.scene import load_scene
 from thgs.synthetic.scene import PRESETS
 from thgs.text import MINILM_SPACE, load_text_encoder
 
@@ -53,6 +52,7 @@ __all__ = [
     "BenchReport",
     "VariantRun",
     "default_presets",
+    "measured",
     "require_matplotlib",
     "run_bench",
     "write_bench",
@@ -225,8 +225,10 @@ def _rss_bytes() -> int:
         return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
 
 
-def _measured(function: Callable[[], T]) -> tuple[T, float, float, float | None]:
-    """``(result, seconds, peak RSS GiB, peak CUDA GiB or None)`` of ``function()``."""
+def measured(function: Callable[[], T]) -> tuple[T, float, float, float | None]:
+    """``(result, seconds, peak GiB, peak CUDA GiB or None)`` of ``function()``: wall time,
+    the process's peak resident memory while it ran (sampled every 5 ms) and, on CUDA, the peak
+    allocated GPU memory."""
     peak = [_rss_bytes()]
     done = threading.Event()
 
@@ -265,45 +267,37 @@ def _bench_scene(
     folder, _ = synthetic_dataset(
         cache, preset, seed, config.gaussians, config.views, encoder, progress
     )
-    scene = load_scene(folder)
-    features_dir = folder / "language_features"
-    recorded = read_embedding_space(features_dir)
-    space = recorded[0] if recorded is not None else ""
-    if space != encoder.space:
-        raise InputError(features_dir, f"features are in {space!r}, expected {encoder.space!r}")
-    guidance = load_guidance(features_dir, scene.cameras)
+    scene, guidance = open_synthetic_dataset(folder, encoder)
     ground_truth = find_ground_truth(folder)
     base = FieldConfig.lerf()
     configs = {name: VARIANTS[name](base) for name in config.variants}
-    lift_groups: dict[int, list[str]] = {}
-    lift_configs = []
+    lift_groups: list[tuple[LiftConfig, list[str]]] = []  # variants that lift alike
     for name, variant in configs.items():
-        key = next(
-            (i for i, c in enumerate(lift_configs) if c == variant.superpoints.lift),
-            len(lift_configs),
-        )
-        if key == len(lift_configs):
-            lift_configs.append(variant.superpoints.lift)
-        lift_groups.setdefault(key, []).append(name)
+        for lift, names in lift_groups:
+            if lift == variant.superpoints.lift:
+                names.append(name)
+                break
+        else:
+            lift_groups.append((variant.superpoints.lift, [name]))
 
     runs = []
     tag = f"{preset} seed {seed}"
-    for key, names in lift_groups.items():
-        lifted, _, lift_peak, lift_gpu = _measured(
-            lambda key=key: lift_scene(scene, guidance, lift_configs[key])
+    for lift, names in lift_groups:
+        lifted, _, lift_peak, lift_gpu = measured(
+            lambda lift=lift: lift_scene(scene, guidance, lift)
         )
         for name in names:
             if progress is not None:
                 progress(tag, len(runs), len(configs))
             variant = configs[name]
-            levels, _, build_peak, build_gpu = _measured(
+            levels, _, build_peak, build_gpu = measured(
                 lambda variant=variant, lifted=lifted: build_levels(lifted, guidance, variant)
             )
             regions = Regions(
                 levels.labels,
                 levels.features,
                 levels.seen,
-                space,
+                encoder.space,
                 variant.merge.min_region_gaussians,
             )
             started = time.perf_counter()
@@ -366,12 +360,9 @@ def run_bench(config: BenchConfig = BenchConfig(), progress: Progress | None = N
     return BenchReport(tuple(runs), machine, asdict(config))
 
 
-def _mean_rows(runs: Sequence[VariantRun]) -> list[tuple[str, str, int, VariantRun]]:
-    """Runs grouped by (preset, variant) in first-seen order, with a representative run."""
-    groups: dict[tuple[str, str], list[VariantRun]] = {}
-    for run in runs:
-        groups.setdefault((run.preset, run.variant), []).append(run)
-    return [(p, v, len(g), g[0]) for (p, v), g in groups.items()]
+def _stage_mean(group: Sequence[VariantRun], names: Sequence[str]) -> float:
+    """Mean over the runs of ``group`` of their seconds summed over the stages ``names``."""
+    return float(np.mean([sum(run.stages.get(name, 0.0) for name in names) for run in group]))
 
 
 @dataclass(frozen=True)
@@ -382,15 +373,21 @@ class BenchReport:
     machine: dict[str, Any]
     config: dict[str, Any]
 
+    def groups(self) -> dict[tuple[str, str], list[VariantRun]]:
+        """The runs of each (preset, variant) — one per seed — in the order they ran."""
+        groups: dict[tuple[str, str], list[VariantRun]] = {}
+        for run in self.runs:
+            groups.setdefault((run.preset, run.variant), []).append(run)
+        return groups
+
     def mean(self, preset: str, variant: str, key: str) -> float:
         """Mean over seeds of a quality value (``"lerf miou"``) or ``"seconds"``/``"peak_gib"``."""
-        values = []
-        for run in self.runs:
-            if run.preset == preset and run.variant == variant:
-                if key in ("seconds", "peak_gib", "evaluation_seconds"):
-                    values.append(float(getattr(run, key)))
-                else:
-                    values.append(run.quality.get(key, float("nan")))
+        values = [
+            float(getattr(run, key))
+            if key in ("seconds", "peak_gib", "evaluation_seconds")
+            else run.quality.get(key, float("nan"))
+            for run in self.groups().get((preset, variant), [])
+        ]
         return float(np.mean(values)) if values else float("nan")
 
     def orderings(self) -> list[tuple[str, tuple[str, ...], tuple[float, ...], bool]]:
@@ -436,22 +433,20 @@ class BenchReport:
             "| peak GiB | regions L0 / L1 / L2 / L3 |",
             "|---|---|---|---|---|---|---|---|---|",
         ]
-        for preset, variant, _, run in _mean_rows(self.runs):
-            group = [r for r in self.runs if r.preset == preset and r.variant == variant]
-
-            def stage_sum(names: Sequence[str], group=group) -> float:
-                return float(np.mean([sum(r.stages.get(n, 0.0) for n in names) for r in group]))
-
-            merge = [s for s in run.stages if s == "adjacency" or s.startswith("level")]
-            merge += ["absorb"]
-            lift = f"{stage_sum(['lift']):.1f}" + (" (shared)" if run.lift_shared else "")
+        groups = self.groups()
+        for (preset, variant), group in groups.items():
+            stages = group[0].stages
+            merge = [s for s in stages if s in ("adjacency", "absorb") or s.startswith("level")]
+            lift = f"{_stage_mean(group, ['lift']):.1f}"
+            lift += " (shared)" if group[0].lift_shared else ""
+            partition = _stage_mean(group, ["knn", "votes", "reweight", "partition"])
             counts = " / ".join(
                 f"{np.mean([r.region_counts[k] for r in group]):.0f}" for k in range(4)
             )
             lines.append(
                 f"| {preset} | {variant} | {self.mean(preset, variant, 'seconds'):.1f} "
-                f"| {lift} | {stage_sum(['knn', 'votes', 'reweight', 'partition']):.1f} "
-                f"| {stage_sum(merge):.1f} | {stage_sum(['features']):.2f} "
+                f"| {lift} | {partition:.1f} | {_stage_mean(group, merge):.1f} "
+                f"| {_stage_mean(group, ['features']):.2f} "
                 f"| {self.mean(preset, variant, 'peak_gib'):.2f} | {counts} |"
             )
         keys = [f"{p} {m}" for p, m in _QUALITY if any(f"{p} {m}" in r.quality for r in self.runs)]
@@ -460,7 +455,7 @@ class BenchReport:
             "| preset | variant | " + " | ".join(keys) + " |",
             "|---|---|" + "---|" * len(keys),
         ]
-        for preset, variant, _, _ in _mean_rows(self.runs):
+        for preset, variant in groups:
             values = " | ".join(f"{self.mean(preset, variant, key):.3f}" for key in keys)
             lines.append(f"| {preset} | {variant} | {values} |")
         checks = self.orderings()
@@ -478,25 +473,14 @@ class BenchReport:
             ThgsError: matplotlib is not installed (``pip install 'thgs[bench]'``).
         """
         pyplot = require_matplotlib()
-        rows = _mean_rows(self.runs)
+        groups = self.groups()
         stages = list(dict.fromkeys(s for run in self.runs for s in run.stages))
-        figure, axis = pyplot.subplots(figsize=(11, 0.45 * len(rows) + 1.8))
-        labels = [f"{preset}: {variant}" for preset, variant, _, _ in rows]
-        left = np.zeros(len(rows))
+        figure, axis = pyplot.subplots(figsize=(11, 0.45 * len(groups) + 1.8))
+        labels = [f"{preset}: {variant}" for preset, variant in groups]
+        left = np.zeros(len(groups))
         colors = pyplot.get_cmap("tab20")
         for i, stage in enumerate(stages):
-            widths = np.array(
-                [
-                    np.mean(
-                        [
-                            r.stages.get(stage, 0.0)
-                            for r in self.runs
-                            if r.preset == preset and r.variant == variant
-                        ]
-                    )
-                    for preset, variant, _, _ in rows
-                ]
-            )
+            widths = np.array([_stage_mean(group, [stage]) for group in groups.values()])
             axis.barh(labels, widths, left=left, label=stage, color=colors(i % 20))
             left += widths
         axis.invert_yaxis()

@@ -32,7 +32,7 @@ from thgs.eval.ground_truth import Hierarchy, read_hierarchy
 from thgs.export import region_colors, slug, write_json, write_map_png
 from thgs.field import FIELD_LEVELS, SemanticField, save_field
 from thgs.field_scene import record_scene
-from thgs.guidance import load_guidance, read_embedding_space
+from thgs.guidance import ViewGuidance, load_guidance, read_embedding_space
 from thgs.pipeline import FieldConfig, Progress, build_field
 from thgs.query import FieldQuery
 from thgs.render import render
@@ -53,6 +53,7 @@ __all__ = [
     "QueryResult",
     "default_cache",
     "demo_queries",
+    "open_synthetic_dataset",
     "run_demo",
     "synthetic_dataset",
 ]
@@ -250,6 +251,25 @@ def synthetic_dataset(
     return folder, True
 
 
+def open_synthetic_dataset(folder: Path, encoder: TextEncoder) -> tuple[Scene, list[ViewGuidance]]:
+    """A synthetic dataset's scene and guidance, checking its features are in ``encoder``'s
+    space.
+
+    Raises:
+        InputError: the guidance records no embedding space, or another one.
+    """
+    scene = load_scene(folder)
+    features_dir = folder / "language_features"
+    recorded = read_embedding_space(features_dir)
+    if recorded is None:
+        raise InputError(features_dir, "records no embedding space (embedding.json)")
+    if recorded[0] != encoder.space:
+        raise InputError(
+            features_dir, f"features are in {recorded[0]!r}, expected {encoder.space!r}"
+        )
+    return scene, load_guidance(features_dir, scene.cameras)
+
+
 def _iou(selected: np.ndarray, wanted: np.ndarray) -> float:
     if not wanted.any():
         return float("nan")
@@ -314,16 +334,8 @@ def run_demo(
     folder, generated = synthetic_dataset(
         cache, scene_preset, seed, gaussians, views, encoder, progress
     )
-    scene = load_scene(folder)
-    features_dir = folder / "language_features"
-    recorded = read_embedding_space(features_dir)
-    if recorded is None:
-        raise InputError(features_dir, "records no embedding space (embedding.json)")
-    space = recorded[0]
-    if space != encoder.space:
-        raise InputError(features_dir, f"features are in {space!r}, expected {encoder.space!r}")
-    guidance = load_guidance(features_dir, scene.cameras)
-    field = build_field(scene, guidance, FieldConfig.lerf(), space=space, progress=progress)
+    scene, guidance = open_synthetic_dataset(folder, encoder)
+    field = build_field(scene, guidance, FieldConfig.lerf(), space=encoder.space, progress=progress)
     field = record_scene(field, folder)
     out.mkdir(parents=True, exist_ok=True)
     field_path = out / "field.thgs"

@@ -214,14 +214,43 @@ def _checked_inputs(
     return gaussians, cameras
 
 
-def _lift_scene(
+@dataclass(frozen=True, eq=False)
+class LiftedScene:
+    """A scene's views lifted onto its Gaussians once, to build several fields from.
+
+    Attributes:
+        gaussians: the N Gaussians; cameras: the M cameras, in guidance order.
+        lifted: one :class:`thgs.lift.ViewLift` per view.
+        config: the lifting settings used.
+        views_without_masks: views whose guidance has no mask.
+        seconds: wall time of the lifting.
+    """
+
+    gaussians: Gaussians
+    cameras: Cameras
+    lifted: list[ViewLift]
+    config: LiftConfig
+    views_without_masks: int
+    seconds: float
+
+
+def _check_features(guidance: Sequence[ViewGuidance]) -> None:
+    if not guidance or guidance[0].features.ndim != 2 or guidance[0].features.shape[1] < 1:
+        raise InputError("guidance", "has no mask features (need [masks, D] with D ≥ 1)")
+
+
+def lift_scene(
     scene: PosedScene,
     guidance: Sequence[ViewGuidance],
-    config: LiftConfig,
-    progress: Progress | None,
-) -> tuple[Gaussians, Cameras, list[ViewLift], int, float]:
-    """Checked inputs, then every view lifted: (gaussians, cameras, lifted, mask-less views,
-    seconds)."""
+    config: LiftConfig = LiftConfig(),
+    progress: Progress | None = None,
+) -> LiftedScene:
+    """Every view's masks lifted onto the Gaussians, after checking the inputs (the first stage
+    of :func:`partition_scene` and :func:`build_field`).
+
+    Raises:
+        InputError: the inputs :func:`partition_scene` refuses.
+    """
     gaussians, cameras = _checked_inputs(scene, guidance)
     empty = [view.stem for view in guidance if not (view.segments >= 0).any()]
     if len(empty) == len(guidance):
@@ -238,7 +267,9 @@ def _lift_scene(
         config,
         progress=None if progress is None else lambda done, total: progress("lift", done, total),
     )
-    return gaussians, cameras, lifted, len(empty), time.perf_counter() - started
+    seconds = time.perf_counter() - started
+    logger.info("lift: %d views in %.2f s", len(lifted), seconds)
+    return LiftedScene(gaussians, cameras, lifted, config, len(empty), seconds)
 
 
 def partition_scene(
@@ -268,12 +299,12 @@ def partition_scene(
             stems, resolution) or is malformed (mask ids outside its feature table). Views
             without masks are allowed (logged): they carry no votes.
     """
-    gaussians, _, lifted, empty, lift_seconds = _lift_scene(scene, guidance, config.lift, progress)
-    labels, report = partition_lifted(gaussians, lifted, config)
+    lifted = lift_scene(scene, guidance, config.lift, progress)
+    labels, report = partition_lifted(lifted.gaussians, lifted.lifted, config)
     report = replace(
         report,
-        views_without_masks=empty,
-        seconds={"lift": lift_seconds, **report.seconds},
+        views_without_masks=lifted.views_without_masks,
+        seconds={"lift": lifted.seconds, **report.seconds},
     )
     for line in report.lines():
         logger.info("%s", line)
@@ -331,42 +362,6 @@ PRESETS: dict[str, Callable[[], FieldConfig]] = {
 
 
 @dataclass(frozen=True, eq=False)
-class LiftedScene:
-    """A scene's views lifted onto its Gaussians once, to build several fields from.
-
-    Attributes:
-        gaussians: the N Gaussians; cameras: the M cameras, in guidance order.
-        lifted: one :class:`thgs.lift.ViewLift` per view.
-        config: the lifting settings used.
-        views_without_masks: views whose guidance has no mask.
-        seconds: wall time of the lifting.
-    """
-
-    gaussians: Gaussians
-    cameras: Cameras
-    lifted: list[ViewLift]
-    config: LiftConfig
-    views_without_masks: int
-    seconds: float
-
-
-def lift_scene(
-    scene: PosedScene,
-    guidance: Sequence[ViewGuidance],
-    config: LiftConfig = LiftConfig(),
-    progress: Progress | None = None,
-) -> LiftedScene:
-    """Every view's masks lifted onto the Gaussians (the first stage of :func:`build_field`).
-
-    Raises:
-        InputError: the inputs :func:`partition_scene` refuses.
-    """
-    gaussians, cameras, lifted, empty, seconds = _lift_scene(scene, guidance, config, progress)
-    logger.info("lift: %d views in %.2f s", len(lifted), seconds)
-    return LiftedScene(gaussians, cameras, lifted, config, empty, seconds)
-
-
-@dataclass(frozen=True, eq=False)
 class Levels:
     """Regions at levels 0–3 and their features, before they become a field.
 
@@ -407,8 +402,7 @@ def build_levels(
             "was lifted with other settings than config.superpoints.lift; lift again "
             "(thgs.pipeline.lift_scene) with the config's",
         )
-    if not guidance or guidance[0].features.ndim != 2 or guidance[0].features.shape[1] < 1:
-        raise InputError("guidance", "has no mask features (need [masks, D] with D ≥ 1)")
+    _check_features(guidance)
 
     def stage(name: str, done: int) -> None:
         if progress is not None:
@@ -497,8 +491,7 @@ def build_field(
         )
     if not isinstance(space, str) or not space.strip():
         raise InputError("space", "name the embedding space of the guidance features")
-    if not guidance or guidance[0].features.ndim != 2 or guidance[0].features.shape[1] < 1:
-        raise InputError("guidance", "has no mask features (need [masks, D] with D ≥ 1)")
+    _check_features(guidance)
     lifted = lift_scene(scene, guidance, config.superpoints.lift, progress)
     levels = build_levels(lifted, guidance, config, progress=progress)
     assert levels.parents is not None  # every mode but "independent" nests

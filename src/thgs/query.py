@@ -47,6 +47,7 @@ __all__ = [
     "relevancy",
     "select",
     "select_reference",
+    "small_region_size",
 ]
 
 logger = logging.getLogger(__name__)
@@ -297,7 +298,7 @@ class FieldQuery:
         self.encoder = encoder
         self.config = config.check()
         self.threshold = default_threshold(field.space)
-        self.min_gaussians = _small_region_size(field)
+        self.min_gaussians = small_region_size(field)
         self._canonical = encoder.encode(list(CANONICAL_PHRASES)).astype(np.float64)
         self._embeddings: dict[str, np.ndarray] = {}
         self._members = {k: _Members(field.labels[:, k], field.region_counts[k]) for k in (1, 2, 3)}
@@ -383,8 +384,9 @@ class FieldQuery:
             self._results.popitem(last=False)
 
 
-def _small_region_size(field: SemanticField) -> int:
-    """The field's ``thres_merge``: regions below it are unabsorbed leftovers."""
+def small_region_size(field: SemanticField) -> int:
+    """The field's ``thres_merge`` (``config["merge"]["min_region_gaussians"]``, 0 when it does
+    not say): regions below it are unabsorbed leftovers."""
     merge = field.config.get("merge")
     size = merge.get("min_region_gaussians", 0) if isinstance(merge, dict) else 0
     return int(size) if isinstance(size, int) and not isinstance(size, bool) else 0

@@ -60,6 +60,7 @@ from thgs.eval.scannet import (
 )
 from thgs.eval.segmenter import Segmenter
 from thgs.eval.three_dovs import SegmentationSet, query_text
+from thgs.field_scene import find_view
 from thgs.render import RasterConfig
 from thgs.scene import Cameras, Gaussians
 from thgs.views import relevancy_map, selection_masks
@@ -73,7 +74,6 @@ __all__ = [
     "evaluate_lerf_opengaussian",
     "evaluate_scannet",
     "frame_mean",
-    "opengaussian_prompts",
     "read_lerf_frames",
     "scannet_subsets",
 ]
@@ -145,13 +145,6 @@ def read_lerf_frames(folder: str | os.PathLike[str]) -> list[tuple[str, FrameLab
     return [(path.stem, read_lerf_labels(path)) for path in paths]
 
 
-def _view(cameras: Cameras, name: str, source: str) -> int:
-    for i, (stem, full) in enumerate(zip(cameras.stems, cameras.names)):
-        if name in (stem, full):
-            return i
-    raise InputError(source, f"names view {name!r}, which the scene's cameras do not have")
-
-
 def _lerf_prompts(frame: FrameLabels, prompts: Sequence[str] | None) -> list[str]:
     categories = list(frame.categories)
     return categories if prompts is None else [c for c in categories if c in prompts]
@@ -188,7 +181,7 @@ def evaluate_lerf(
     for done, (stem, frame) in enumerate(frames):
         texts = _lerf_prompts(frame, prompts)
         if texts:
-            camera = cameras.select([_view(cameras, stem, f"label file {stem}.json")])
+            camera = cameras.select([find_view(cameras, stem, f"label file {stem}.json")])
             height, width = int(camera.heights[0]), int(camera.widths[0])
             selected = segmenter.select(texts)
             masks = selection_masks(
@@ -245,7 +238,7 @@ def evaluate_lerf_langsplat(
     items = []
     for done, (stem, frame) in enumerate(frames):
         texts = list(frame.categories)
-        camera = cameras.select([_view(cameras, stem, f"label file {stem}.json")])
+        camera = cameras.select([find_view(cameras, stem, f"label file {stem}.json")])
         height, width = int(camera.heights[0]), int(camera.widths[0])
         per_gaussian = np.concatenate([segmenter.relevancy(texts, k) for k in levels], axis=1)
         maps = relevancy_map(gaussians, camera, per_gaussian, config=raster)  # [H, W, L·Q]
@@ -284,11 +277,6 @@ def evaluate_lerf_langsplat(
     )
 
 
-def opengaussian_prompts(scene_name: str) -> tuple[str, ...] | None:
-    """OpenGaussian's fixed LERF-OVS prompts of ``scene_name`` (None for other scenes)."""
-    return OPENGAUSSIAN_LERF_PROMPTS.get(scene_name)
-
-
 def evaluate_lerf_opengaussian(
     segmenter: Segmenter,
     gaussians: Gaussians,
@@ -309,7 +297,7 @@ def evaluate_lerf_opengaussian(
         metrics ``miou`` and ``acc@0.25`` / ``acc@0.5`` (share of (frame, prompt) pairs whose
         IoU exceeds 0.25 / 0.5); one item per (frame, category).
     """
-    prompts = opengaussian_prompts(scene_name)
+    prompts = OPENGAUSSIAN_LERF_PROMPTS.get(scene_name)
     result = evaluate_lerf(
         segmenter,
         gaussians,

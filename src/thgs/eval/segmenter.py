@@ -16,7 +16,14 @@ import numpy as np
 
 from thgs.errors import InputError
 from thgs.field import SemanticField
-from thgs.query import CANONICAL_PHRASES, QueryConfig, default_threshold, relevancy, select
+from thgs.query import (
+    CANONICAL_PHRASES,
+    QueryConfig,
+    default_threshold,
+    relevancy,
+    select,
+    small_region_size,
+)
 from thgs.text import TextEncoder, check_space
 
 __all__ = ["Regions", "Segmenter"]
@@ -45,10 +52,7 @@ class Regions:
     @classmethod
     def from_field(cls, field: SemanticField) -> Regions:
         """A field's regions, with its small-region size (``config["merge"]``)."""
-        merge = field.config.get("merge")
-        size = merge.get("min_region_gaussians", 0) if isinstance(merge, dict) else 0
-        size = size if isinstance(size, int) and not isinstance(size, bool) else 0
-        return cls(field.labels, field.features, field.seen, field.space, size)
+        return cls(field.labels, field.features, field.seen, field.space, small_region_size(field))
 
     def __len__(self) -> int:
         return int(self.labels.shape[0])
