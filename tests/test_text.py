@@ -4,7 +4,6 @@ tokenizer built here, the offline MiniLM model, and the space checks."""
 from __future__ import annotations
 
 import json
-import string
 from pathlib import Path
 
 import numpy as np
@@ -23,49 +22,14 @@ from thgs.text import (
 
 transformers = pytest.importorskip("transformers")
 
+import tiny_models  # noqa: E402  (needs transformers)
+
 SPACE = "test/tiny-clip"
-
-
-def _tiny_clip(folder: Path) -> Path:
-    """A randomly initialised CLIP (32-wide, 2 text layers, 16-D projection) and a character-level
-    BPE tokenizer, saved in Hugging Face format like a downloaded model."""
-    letters = list(string.ascii_lowercase)
-    vocab = {c: i for i, c in enumerate(letters)}
-    vocab |= {c + "</w>": len(letters) + i for i, c in enumerate(letters)}
-    vocab |= {"<|startoftext|>": len(vocab), "<|endoftext|>": len(vocab) + 1}
-    tokenizer = transformers.CLIPTokenizer(vocab=vocab, merges=[])
-    config = transformers.CLIPConfig(
-        text_config={
-            "vocab_size": len(vocab),
-            "hidden_size": 32,
-            "intermediate_size": 64,
-            "num_hidden_layers": 2,
-            "num_attention_heads": 2,
-            "max_position_embeddings": 77,
-            "bos_token_id": vocab["<|startoftext|>"],
-            "eos_token_id": vocab["<|endoftext|>"],
-            "pad_token_id": vocab["<|endoftext|>"],
-        },
-        vision_config={
-            "hidden_size": 32,
-            "intermediate_size": 64,
-            "num_hidden_layers": 1,
-            "num_attention_heads": 2,
-            "image_size": 32,
-            "patch_size": 16,
-        },
-        projection_dim=16,
-    )
-    torch.manual_seed(0)
-    model = transformers.CLIPModel(config).eval()
-    model.save_pretrained(folder)
-    tokenizer.save_pretrained(folder)
-    return folder
 
 
 @pytest.fixture(scope="module")
 def tiny_clip(tmp_path_factory) -> Path:
-    return _tiny_clip(tmp_path_factory.mktemp("tiny-clip"))
+    return tiny_models.tiny_clip(tmp_path_factory.mktemp("tiny-clip"))
 
 
 def test_clip_encoder_gives_the_models_normalized_text_features(tiny_clip):

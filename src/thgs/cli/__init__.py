@@ -10,6 +10,7 @@ from thgs.cli._console import stderr
 from thgs.cli.bench import bench
 from thgs.cli.build import build, demo
 from thgs.cli.evaluate import evaluate, evaluate_mean
+from thgs.cli.preprocess import preprocess
 from thgs.cli.query import export, pick, query
 from thgs.cli.scene import info, synth
 from thgs.errors import ThgsError
@@ -24,6 +25,7 @@ __all__ = [
     "export",
     "info",
     "pick",
+    "preprocess",
     "query",
     "synth",
 ]
@@ -35,6 +37,7 @@ def entrypoint(argv: list[str] | None = None) -> None:
         tyro.extras.subcommand_cli_from_dict(
             {
                 "demo": demo,
+                "preprocess": preprocess,
                 "build": build,
                 "query": query,
                 "pick": pick,

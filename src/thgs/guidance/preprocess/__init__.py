@@ -1,0 +1,56 @@
+"""Preprocessing with real models: multi-level SAM masks and CLIP mask features, written in
+LangSplat's layout (:mod:`thgs.guidance.langsplat`).
+
+- :class:`PointSegmenter` — SAM / SAM 2 through transformers, for point prompts;
+- :func:`generate_masks` — SAM's automatic mask generator with its three outputs kept apart as
+  levels s, m, l (and pooled as ``default``), SAM's filters and LangSplat's mask NMS;
+- :class:`CLIPImageEncoder`, :func:`mask_features` — one CLIP feature per mask;
+- :func:`preprocess_image`, :func:`preprocess_images` — images to a resumable
+  ``language_features`` folder (``thgs preprocess``).
+"""
+
+from thgs.guidance.preprocess.clip_features import CLIPImageEncoder, mask_crops, mask_features
+from thgs.guidance.preprocess.generator import (
+    LevelMasks,
+    MaskGeneratorConfig,
+    crop_boxes,
+    generate_masks,
+    point_grid,
+    segment_map,
+)
+from thgs.guidance.preprocess.run import (
+    MANIFEST_FILE,
+    ImageJob,
+    PreprocessConfig,
+    PreprocessSummary,
+    image_jobs,
+    langsplat_size,
+    preprocess_image,
+    preprocess_images,
+    read_image,
+)
+from thgs.guidance.preprocess.sam import DEFAULT_SAM, EmbeddedImage, PointSegmenter
+
+__all__ = [
+    "DEFAULT_SAM",
+    "MANIFEST_FILE",
+    "CLIPImageEncoder",
+    "EmbeddedImage",
+    "ImageJob",
+    "LevelMasks",
+    "MaskGeneratorConfig",
+    "PointSegmenter",
+    "PreprocessConfig",
+    "PreprocessSummary",
+    "crop_boxes",
+    "generate_masks",
+    "image_jobs",
+    "langsplat_size",
+    "mask_crops",
+    "mask_features",
+    "point_grid",
+    "preprocess_image",
+    "preprocess_images",
+    "read_image",
+    "segment_map",
+]

@@ -1,0 +1,337 @@
+"""Posed images → LangSplat-format guidance: masks at four levels and one CLIP feature per mask.
+
+:func:`preprocess_image` does one image; :func:`preprocess_images` does a list of them into a
+``language_features`` folder, resumably:
+
+- each view's two files are written atomically, ``<stem>_f.npy`` first and ``<stem>_s.npy``
+  last, so a view is finished exactly when its ``_s.npy`` exists; a restarted run skips finished
+  views and rewrites any other (an ``_f.npy`` left alone by a crash is replaced);
+- ``preprocess.json`` records the models and settings; a restart with different ones is refused
+  rather than mixing two kinds of masks in one folder;
+- ``embedding.json`` names the features' embedding space (:mod:`thgs.guidance.langsplat`).
+
+Resolution: LangSplat's rule (images taller than 1080 px are scaled to 1080 px tall; an explicit
+width scales to that width), or each camera's own size when cameras are given, so the masks match
+the views the field is built from without resampling.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from PIL import Image, UnidentifiedImageError
+
+from thgs._atomic import atomic_output
+from thgs.errors import InputError
+from thgs.guidance.langsplat import (
+    LEVELS,
+    ViewGuidance,
+    read_embedding_space,
+    write_embedding_space,
+    write_view_guidance,
+)
+from thgs.guidance.preprocess.clip_features import CLIPImageEncoder, mask_features
+from thgs.guidance.preprocess.generator import MaskGeneratorConfig, generate_masks, segment_map
+from thgs.guidance.preprocess.sam import PointSegmenter
+from thgs.scene import Cameras, find_images
+
+__all__ = [
+    "MANIFEST_FILE",
+    "ImageJob",
+    "PreprocessConfig",
+    "PreprocessSummary",
+    "image_jobs",
+    "langsplat_size",
+    "preprocess_image",
+    "preprocess_images",
+    "read_image",
+]
+
+logger = logging.getLogger(__name__)
+
+MANIFEST_FILE = "preprocess.json"
+"""The file in a ``language_features`` folder recording how its views were made."""
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
+
+
+@dataclass(frozen=True)
+class PreprocessConfig:
+    """Settings of preprocessing; the defaults are LangSplat's.
+
+    Attributes:
+        masks: the mask generator's settings.
+        clip_batch_size: mask crops encoded together.
+        max_height: without an explicit size, images taller than this are scaled to this height
+            (LangSplat's 1080 px rule).
+    """
+
+    masks: MaskGeneratorConfig = field(default_factory=MaskGeneratorConfig)
+    clip_batch_size: int = 64
+    max_height: int = 1080
+
+
+@dataclass(frozen=True)
+class ImageJob:
+    """One image to preprocess.
+
+    Attributes:
+        path: the image file.
+        stem: the view's name, used for its output files (``<stem>_s.npy``, ``<stem>_f.npy``).
+        size: (width, height) in pixels the masks are made at, or None for LangSplat's rule.
+    """
+
+    path: Path
+    stem: str
+    size: tuple[int, int] | None = None
+
+
+@dataclass(frozen=True)
+class PreprocessSummary:
+    """What :func:`preprocess_images` did.
+
+    Attributes:
+        done: stems processed in this run, with seconds per image.
+        skipped: stems already finished by an earlier run.
+        masks: masks with at least one pixel in the id map, per level (``LEVELS`` order),
+            summed over the images done.
+    """
+
+    done: dict[str, float]
+    skipped: list[str]
+    masks: tuple[int, int, int, int]
+
+
+def langsplat_size(
+    width: int, height: int, *, target_width: int | None = None, max_height: int = 1080
+) -> tuple[int, int]:
+    """LangSplat's preprocessing size of a ``width`` × ``height`` image, as (width, height).
+
+    Without ``target_width``, an image taller than ``max_height`` is scaled by
+    ``max_height / height``; with it, by ``target_width / width``. Sizes are truncated, as the
+    reference's ``int(side / scale)``.
+    """
+    if target_width is not None:
+        scale = width / target_width
+    else:
+        scale = height / max_height if height > max_height else 1.0
+    return int(width / scale), int(height / scale)
+
+
+def read_image(path: str | os.PathLike[str], size: tuple[int, int] | None = None) -> np.ndarray:
+    """An image as [H, W, 3] uint8 RGB, resized to ``size`` = (width, height) if given.
+
+    Resizing is bilinear with antialiasing (PIL); an alpha channel is dropped.
+
+    Raises:
+        InputError: the file is missing or not a readable image.
+    """
+    path = Path(path)
+    try:
+        with Image.open(path) as image:
+            image = image.convert("RGB")
+            if size is not None and image.size != tuple(size):
+                image = image.resize(tuple(size), Image.BILINEAR)
+            return np.array(image)
+    except FileNotFoundError as error:
+        raise InputError(path, "no such image") from error
+    except (UnidentifiedImageError, OSError) as error:
+        raise InputError(path, f"not a readable image ({error})") from error
+
+
+def image_jobs(
+    image_dir: str | os.PathLike[str],
+    *,
+    cameras: Cameras | None = None,
+    target_width: int | None = None,
+) -> list[ImageJob]:
+    """The images to preprocess.
+
+    Args:
+        image_dir: the folder of images (``images/`` of a dataset).
+        cameras: if given, exactly the cameras' images, each at its camera's size; otherwise
+            every .png/.jpg/.jpeg in ``image_dir`` (sorted by name) at LangSplat's size.
+        target_width: LangSplat's explicit resolution (output width in pixels); not with
+            ``cameras``.
+
+    Raises:
+        InputError: the folder is missing or holds no images, two images share a stem, a camera's
+            image is missing, or both ``cameras`` and ``target_width`` are given.
+    """
+    image_dir = Path(image_dir)
+    if not image_dir.is_dir():
+        raise InputError(image_dir, "image folder not found")
+    if cameras is not None:
+        if target_width is not None:
+            raise InputError(image_dir, "give either cameras or an explicit width, not both")
+        paths = find_images(cameras, image_dir)
+        missing = [name for name, path in zip(cameras.names, paths) if path is None]
+        if missing:
+            raise InputError(
+                image_dir,
+                f"no image for {len(missing)} of {len(cameras)} cameras (first: {missing[:5]})",
+            )
+        return [
+            ImageJob(path, stem, (int(width), int(height)))
+            for path, stem, width, height in zip(
+                paths, cameras.stems, cameras.widths, cameras.heights
+            )
+        ]
+    paths = sorted(
+        path
+        for path in image_dir.iterdir()
+        if path.is_file() and path.suffix.lower() in IMAGE_SUFFIXES
+    )
+    if not paths:
+        raise InputError(image_dir, "no .png/.jpg/.jpeg images in the folder")
+    stems = [path.stem for path in paths]
+    duplicates = sorted({stem for stem in stems if stems.count(stem) > 1})
+    if duplicates:
+        raise InputError(
+            image_dir, f"several images share a name stem: {duplicates[:5]}; keep one of each"
+        )
+    jobs = []
+    for path in paths:
+        size = None
+        if target_width is not None:
+            with Image.open(path) as image:
+                size = langsplat_size(*image.size, target_width=target_width)
+        jobs.append(ImageJob(path, path.stem, size))
+    return jobs
+
+
+def preprocess_image(
+    image: np.ndarray,
+    stem: str,
+    segmenter: PointSegmenter,
+    encoder: CLIPImageEncoder,
+    config: PreprocessConfig = PreprocessConfig(),
+) -> ViewGuidance:
+    """Masks at the levels default, s, m, l and their CLIP features, in LangSplat's layout.
+
+    Args:
+        image: [H, W, 3] uint8 RGB, at the resolution the masks are wanted at.
+        stem: the view's name.
+        segmenter: SAM or SAM 2.
+        encoder: the CLIP image encoder.
+        config: settings.
+
+    Returns:
+        A :class:`ViewGuidance` with [4, H, W] ids (−1 = no mask; level k's ids follow level
+        k−1's) and [n, D] unit feature rows; a level without masks is all −1.
+    """
+    levels = generate_masks(segmenter, image, config.masks)
+    pixels = torch.from_numpy(image).to(encoder.device).float() / 255.0
+    segments, features, first_id = [], [], 0
+    for name in LEVELS:
+        level = levels[name]
+        masks, boxes = level.masks.to(encoder.device), level.boxes.to(encoder.device)
+        features.append(
+            mask_features(encoder, pixels, masks, boxes, batch_size=config.clip_batch_size)
+        )
+        segments.append(segment_map(level.masks, first_id))
+        first_id += len(level)
+    return ViewGuidance(stem, np.stack(segments), np.concatenate(features).astype(np.float32))
+
+
+def _manifest(segmenter: PointSegmenter, encoder: CLIPImageEncoder, config) -> dict:
+    return {
+        "format": "LangSplat language_features",
+        "sam": segmenter.name,
+        "clip": encoder.space,
+        "config": asdict(config),
+    }
+
+
+def _check_or_write_manifest(output: Path, manifest: dict, overwrite: bool) -> None:
+    path = output / MANIFEST_FILE
+    if not path.is_file() and not overwrite and any(output.glob("*_s.npy")):
+        raise InputError(
+            output,
+            "holds views made by another tool (no preprocess.json); write to a new folder, or "
+            "pass overwrite to replace them",
+        )
+    if path.is_file() and not overwrite:
+        from thgs.scene._json import load_json
+
+        previous = load_json(path)
+        if previous != json.loads(json.dumps(manifest)):
+            raise InputError(
+                path,
+                "this folder was preprocessed with other models or settings "
+                f"({previous.get('sam') if isinstance(previous, dict) else previous!r}); "
+                "write to a new folder, or pass overwrite to start again",
+            )
+        return
+    with atomic_output(path, "w") as handle:
+        json.dump(manifest, handle, indent=2)
+        handle.write("\n")
+
+
+def _is_finished(output: Path, stem: str) -> bool:
+    return (output / f"{stem}_s.npy").is_file()
+
+
+def preprocess_images(
+    jobs: Sequence[ImageJob],
+    output: str | os.PathLike[str],
+    segmenter: PointSegmenter,
+    encoder: CLIPImageEncoder,
+    config: PreprocessConfig = PreprocessConfig(),
+    *,
+    overwrite: bool = False,
+    on_image: Callable[[str, float | None], None] | None = None,
+) -> PreprocessSummary:
+    """Preprocess images into a ``language_features`` folder, skipping finished views.
+
+    Args:
+        jobs: the images, from :func:`image_jobs`.
+        output: the ``language_features`` folder (created if missing).
+        segmenter, encoder, config: the models and settings.
+        overwrite: redo every view and replace the folder's record of models and settings.
+        on_image: called after each image with its stem and seconds (None when skipped).
+
+    Raises:
+        InputError: the folder was made with other models or settings (unless ``overwrite``),
+            its embedding space differs, or an image is unreadable.
+    """
+    output = Path(output)
+    output.mkdir(parents=True, exist_ok=True)
+    _check_or_write_manifest(output, _manifest(segmenter, encoder, config), overwrite)
+    recorded = read_embedding_space(output)
+    if recorded is not None and recorded != (encoder.space, encoder.dim) and not overwrite:
+        raise InputError(
+            output, f"holds {recorded[0]} features ({recorded[1]}-D), not {encoder.space}"
+        )
+    write_embedding_space(output, encoder.space, encoder.dim)
+    done: dict[str, float] = {}
+    skipped: list[str] = []
+    counts = np.zeros(len(LEVELS), dtype=np.int64)
+    for job in jobs:
+        if not overwrite and _is_finished(output, job.stem):
+            skipped.append(job.stem)
+            if on_image is not None:
+                on_image(job.stem, None)
+            continue
+        start = time.perf_counter()
+        image = read_image(job.path, job.size)
+        if job.size is None:
+            size = langsplat_size(image.shape[1], image.shape[0], max_height=config.max_height)
+            if size != (image.shape[1], image.shape[0]):
+                image = read_image(job.path, size)
+        guidance = preprocess_image(image, job.stem, segmenter, encoder, config)
+        write_view_guidance(output, guidance)
+        counts += [len(guidance.level_ids(level)) for level in range(len(LEVELS))]
+        done[job.stem] = time.perf_counter() - start
+        logger.info("%s: %d masks in %.2f s", job.stem, len(guidance.features), done[job.stem])
+        if on_image is not None:
+            on_image(job.stem, done[job.stem])
+    return PreprocessSummary(done, skipped, tuple(int(c) for c in counts))
