@@ -113,7 +113,10 @@ def test_sam_matches_transformers_processing(models):
     assert (segmenter.kind, segmenter.input_size) == ("sam", 256)
     image = _random_image(48, 80, 0)
     points = torch.tensor([[3.0, 40.0], [79.0, 0.0], [41.5, 22.25]])
-    logits, iou = segmenter.decode(segmenter.embed(image), points)
+    embedded = segmenter.embed(image)
+    low_res, iou = segmenter.decode(embedded, points)
+    assert low_res.shape == (3, 3, 64, 64)  # 4 × the 16² image embedding
+    logits = segmenter.upsample(low_res.flatten(0, 1), embedded).reshape(3, 3, 48, 80)
     assert logits.shape == (3, 3, 48, 80) and iou.shape == (3, 3)
 
     processor = SamImageProcessorPil(
@@ -141,7 +144,9 @@ def test_sam2_resizes_to_the_square_and_scales_points_per_axis(models):
     assert (segmenter.kind, segmenter.input_size) == ("sam2", 256)
     image = _random_image(40, 72, 1)
     points = torch.tensor([[10.0, 30.0], [71.0, 2.0]])
-    logits, iou = segmenter.decode(segmenter.embed(image), points)
+    embedded = segmenter.embed(image)
+    low_res, iou = segmenter.decode(embedded, points)
+    logits = segmenter.upsample(low_res.flatten(0, 1), embedded).reshape(2, 3, 40, 72)
 
     # by hand: a 256 × 256 bilinear resize, ImageNet normalization, x · 256/72 and y · 256/40,
     # low-res logits straight to 40 × 72
@@ -197,6 +202,9 @@ class ColourSegmenter:
         masks &= at_points[:, :, None, None] > 0
         logits = torch.where(masks, 10.0, -10.0)
         return logits, torch.where(at_points > 0, 0.95, 0.0)
+
+    def upsample(self, logits: torch.Tensor, image: np.ndarray) -> torch.Tensor:
+        return logits  # decoded at the image's size already
 
 
 def _labelled_scene() -> tuple[np.ndarray, dict[str, list[np.ndarray]]]:

@@ -3,7 +3,8 @@ outputs kept apart, as LangSplat runs it.
 
 For each crop (the whole image, then ``crop_layers`` layers of overlapping 2×2, 4×4, … crops),
 the image is embedded once and a grid of single-point prompts (``points_per_side``² per crop) is
-decoded in batches. Every prompt gives three masks (SAM's small/medium/large outputs). Level
+decoded in batches; only masks passing the predicted-IoU threshold are upsampled to full size.
+Every prompt gives three masks (SAM's small/medium/large outputs). Level
 ``default`` pools all three, levels ``s``, ``m``, ``l`` take one output each; every level is then
 filtered on its own, exactly as segment-anything's ``SamAutomaticMaskGenerator`` filters its one
 pooled list:
@@ -184,15 +185,16 @@ def _crop_candidates(
     offset = torch.tensor([x0, y0, x0, y0], device=segmenter.device)
     parts: list[tuple[torch.Tensor, ...]] = []
     for start in range(0, len(points), config.points_per_batch):
-        logits, iou = segmenter.decode(embedded, points[start : start + config.points_per_batch])
-        logits, iou = logits.flatten(0, 1), iou.flatten()
+        low_res, iou = segmenter.decode(embedded, points[start : start + config.points_per_batch])
+        low_res, iou = low_res.flatten(0, 1), iou.flatten()
         output = torch.arange(3, device=iou.device).repeat(len(iou) // 3)
-        keep = (
-            iou > config.pred_iou_threshold
-            if config.pred_iou_threshold > 0
-            else torch.ones_like(iou, dtype=torch.bool)
-        )
-        logits, iou, output = logits[keep], iou[keep], output[keep]
+        if config.pred_iou_threshold > 0:
+            # SAM filters after upsampling; the predicted IoU does not depend on it, so only the
+            # masks that pass are upsampled
+            keep = iou > config.pred_iou_threshold
+            low_res, iou, output = low_res[keep], iou[keep], output[keep]
+        logits = segmenter.upsample(low_res, embedded)
+        del low_res
         stability = stability_score(logits, config.mask_threshold, config.stability_offset)
         if config.stability_threshold > 0:
             keep = stability >= config.stability_threshold

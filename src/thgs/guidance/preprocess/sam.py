@@ -1,8 +1,9 @@
 """Point-prompted SAM and SAM 2 through transformers (``SamModel``, ``Sam2Model``), no torchvision.
 
-A :class:`PointSegmenter` embeds an image once (:meth:`PointSegmenter.embed`) and then decodes
-SAM's three multimask outputs for batches of single foreground points
-(:meth:`PointSegmenter.decode`), returning mask logits at the image's own size. It reproduces the
+A :class:`PointSegmenter` embeds an image once (:meth:`PointSegmenter.embed`), decodes SAM's
+three multimask outputs for batches of single foreground points (:meth:`PointSegmenter.decode`,
+low-resolution logits and predicted IoU) and upsamples the logits of the masks worth keeping to
+the image's own size (:meth:`PointSegmenter.upsample`). It reproduces the
 original predictors' image handling, written here because transformers' SAM image processors
 import torchvision:
 
@@ -174,16 +175,17 @@ class PointSegmenter:
     def decode(
         self, embedded: EmbeddedImage, points: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """SAM's three masks for each single-point prompt.
+        """SAM's three low-resolution masks for each single-point prompt.
 
         Args:
             embedded: the image, from :meth:`embed`.
             points: [P, 2] float (x, y) pixel coordinates in the original image.
 
         Returns:
-            ``(logits, iou)``: [P, 3, H, W] float32 mask logits at the original image size (a
-            pixel is in the mask where its logit > 0) and [P, 3] float32 predicted IoU, both on
-            the model's device. Output k is SAM's k-th multimask output (small to large, roughly).
+            ``(low_res, iou)``: [P, 3, h, w] float32 mask logits at the decoder's resolution
+            (256² for the released models; :meth:`upsample` brings them to the image) and [P, 3]
+            float32 predicted IoU, both on the model's device. Output k is SAM's k-th multimask
+            output (small to large, roughly).
         """
         if points.ndim != 2 or points.shape[1] != 2:
             raise InputError("points", f"expected [P, 2] (x, y), got {list(points.shape)}")
@@ -200,16 +202,18 @@ class PointSegmenter:
                 input_labels=labels,
                 multimask_output=True,
             )
-            low_res = output.pred_masks[0].float()  # [P, 3, h, w]
-            logits = self._upsample(low_res, embedded)
-        return logits, output.iou_scores[0].float()
+        return output.pred_masks[0].float(), output.iou_scores[0].float()
 
-    def _upsample(self, low_res: torch.Tensor, embedded: EmbeddedImage) -> torch.Tensor:
+    def upsample(self, low_res: torch.Tensor, embedded: EmbeddedImage) -> torch.Tensor:
+        """[K, h, w] low-resolution logits from :meth:`decode` → [K, H, W] float32 logits at the
+        original image's size (a pixel is in the mask where its logit > 0)."""
         size = (embedded.height, embedded.width)
-        if self.kind == "sam2":
-            return F.interpolate(low_res, size, mode="bilinear", align_corners=False)
-        square = F.interpolate(
-            low_res, (self.input_size, self.input_size), mode="bilinear", align_corners=False
-        )
-        square = square[..., : embedded.resized_height, : embedded.resized_width]
-        return F.interpolate(square, size, mode="bilinear", align_corners=False)
+        low_res = low_res[:, None]
+        with torch.inference_mode():
+            if self.kind == "sam2":
+                return F.interpolate(low_res, size, mode="bilinear", align_corners=False)[:, 0]
+            square = F.interpolate(
+                low_res, (self.input_size, self.input_size), mode="bilinear", align_corners=False
+            )
+            square = square[..., : embedded.resized_height, : embedded.resized_width]
+            return F.interpolate(square, size, mode="bilinear", align_corners=False)[:, 0]
