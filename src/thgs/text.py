@@ -25,6 +25,7 @@ from typing import Protocol
 
 import numpy as np
 
+from thgs._hf import load_local_model, quietly
 from thgs.errors import InputError, ThgsError
 
 __all__ = [
@@ -65,22 +66,6 @@ class TextEncoder(Protocol):
         ...
 
 
-def _quietly(load):
-    """Run ``load()`` without transformers' weight-loading progress bar (only the CLI shows
-    progress)."""
-    try:
-        from transformers.utils import logging as transformers_logging
-    except ImportError:
-        return load()
-    enabled = transformers_logging.is_progress_bar_enabled()
-    transformers_logging.disable_progress_bar()
-    try:
-        return load()
-    finally:
-        if enabled:
-            transformers_logging.enable_progress_bar()
-
-
 class MiniLMEncoder:
     """all-MiniLM-L6-v2 through sentence-transformers, on the CPU unless told otherwise.
 
@@ -118,7 +103,7 @@ class MiniLMEncoder:
         if not (model_path / "modules.json").is_file():
             raise ThgsError(f"{model_path}: not a sentence-transformers model folder")
         os.environ.setdefault("HF_HUB_OFFLINE", "1")
-        self._model = _quietly(
+        self._model = quietly(
             lambda: SentenceTransformer(str(model_path), device=device, local_files_only=True)
         )
         model = self._model
@@ -182,22 +167,14 @@ class CLIPTextEncoder:
                 "the CLIP text encoder needs transformers: pip install 'thgs[models]'"
             ) from error
         self.space = space
-        source = str(model_path) if model_path is not None else space
-        if model_path is not None and not (Path(model_path) / "config.json").is_file():
-            raise ThgsError(f"{model_path}: not a Hugging Face model folder (no config.json)")
-        try:
-            self._model = _quietly(
-                lambda: CLIPModel.from_pretrained(source, local_files_only=True).to(device).eval()
-            )
-            self._tokenizer = AutoTokenizer.from_pretrained(source, local_files_only=True)
-        except OSError as error:
-            raise ThgsError(
-                f"CLIP weights for {space!r} not found "
-                + (f"in {model_path}" if model_path is not None else "in the Hugging Face cache")
-                + f". On a machine with internet run `hf download {space}` (it fills "
-                "~/.cache/huggingface, or $HF_HOME) and copy that cache here, or pass a local "
-                "folder with the model in Hugging Face format (text_model_path / --text-model)"
-            ) from error
+
+        def load(source: str):
+            model = CLIPModel.from_pretrained(source, local_files_only=True).to(device).eval()
+            return model, AutoTokenizer.from_pretrained(source, local_files_only=True)
+
+        (self._model, self._tokenizer), source = load_local_model(
+            load, space, model_path, what="CLIP", hint="text_model_path / --text-model"
+        )
         self._torch = torch
         self._device = device
         self.dim = int(self._model.config.projection_dim)

@@ -34,13 +34,13 @@ from __future__ import annotations
 
 import logging
 import os
-from pathlib import Path
 
 import numpy as np
 import torch
 
+from thgs._hf import load_local_model
 from thgs.errors import InputError, ThgsError
-from thgs.text import LANGSPLAT_SPACE, _quietly
+from thgs.text import LANGSPLAT_SPACE
 
 __all__ = [
     "CLIP_MEAN",
@@ -247,21 +247,15 @@ class CLIPImageEncoder:
                 "the CLIP image encoder needs transformers: pip install 'thgs[models]'"
             ) from error
         self.space = space
-        source = str(model_path) if model_path is not None else space
-        if model_path is not None and not (Path(model_path) / "config.json").is_file():
-            raise ThgsError(f"{model_path}: not a Hugging Face model folder (no config.json)")
-        try:
-            self._model = _quietly(
-                lambda: CLIPModel.from_pretrained(source, local_files_only=True).to(device).eval()
-            )
-        except OSError as error:
-            raise ThgsError(
-                f"CLIP weights for {space!r} not found "
-                + (f"in {model_path}" if model_path is not None else "in the Hugging Face cache")
-                + f". On a machine with internet run `hf download {space}` (it fills "
-                "~/.cache/huggingface, or $HF_HOME) and copy that cache here, or pass a local "
-                "folder with the model in Hugging Face format (model_path)"
-            ) from error
+        self._model, source = load_local_model(
+            lambda source: (
+                CLIPModel.from_pretrained(source, local_files_only=True).to(device).eval()
+            ),
+            space,
+            model_path,
+            what="CLIP",
+            hint="model_path",
+        )
         if dtype is not None:
             self._model.to(dtype)
         self.device = torch.device(device)

@@ -24,13 +24,13 @@ from __future__ import annotations
 import logging
 import os
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 from PIL import Image
 
+from thgs._hf import load_local_model
 from thgs.errors import InputError, ThgsError
 
 __all__ = ["DEFAULT_SAM", "EmbeddedImage", "PointSegmenter"]
@@ -62,14 +62,6 @@ class EmbeddedImage:
     resized_width: int
 
 
-def _model_source(model: str, model_path: str | os.PathLike[str] | None) -> str:
-    if model_path is None:
-        return model
-    if not (Path(model_path) / "config.json").is_file():
-        raise ThgsError(f"{model_path}: not a Hugging Face model folder (no config.json)")
-    return str(model_path)
-
-
 class PointSegmenter:
     """SAM or SAM 2 (chosen by the checkpoint's ``model_type``), for point prompts.
 
@@ -98,35 +90,25 @@ class PointSegmenter:
             from transformers import AutoConfig, Sam2Model, SamModel
         except ImportError as error:
             raise ThgsError("SAM needs transformers: pip install 'thgs[models]'") from error
-        from thgs.text import _quietly
-
-        source = _model_source(model, model_path)
         self.name = model if model_path is None else str(model_path)
-        try:
+
+        def load(source: str):
             config = AutoConfig.from_pretrained(source, local_files_only=True)
-            kind = config.model_type
             classes = {"sam": SamModel, "sam2": Sam2Model}
-            if kind not in classes:
+            if config.model_type not in classes:
                 raise ThgsError(
-                    f"{self.name}: a {kind!r} checkpoint, expected SAM ('sam') or SAM 2 ('sam2')"
+                    f"{self.name}: a {config.model_type!r} checkpoint, expected SAM ('sam') or "
+                    "SAM 2 ('sam2')"
                 )
-            self._model = _quietly(
-                lambda: (
-                    classes[kind]
-                    .from_pretrained(source, local_files_only=True, dtype=dtype)
-                    .to(device)
-                    .eval()
-                )
+            network = classes[config.model_type].from_pretrained(
+                source, local_files_only=True, dtype=dtype
             )
-        except OSError as error:
-            raise ThgsError(
-                f"SAM weights for {model!r} not found "
-                + (f"in {model_path}" if model_path is not None else "in the Hugging Face cache")
-                + f". On a machine with internet run `hf download {model}` (it fills "
-                "~/.cache/huggingface, or $HF_HOME) and copy that cache here, or pass a local "
-                "folder with the model in Hugging Face format (--sam PATH)"
-            ) from error
-        self.kind: str = kind
+            return config, network.to(device).eval()
+
+        (config, self._model), source = load_local_model(
+            load, model, model_path, what="SAM", hint="--sam PATH"
+        )
+        self.kind: str = config.model_type
         self.device = torch.device(device)
         self.dtype = dtype
         self.input_size = int(config.prompt_encoder_config.image_size)
@@ -134,7 +116,7 @@ class PointSegmenter:
         self._std = torch.tensor(IMAGENET_STD, device=self.device).view(3, 1, 1)
         logger.info(
             "loaded %s (%s, %d px input) from %s on %s",
-            kind,
+            self.kind,
             model,
             self.input_size,
             source,

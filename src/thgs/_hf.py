@@ -1,0 +1,69 @@
+"""Loading Hugging Face models from a local folder or the cache, never from the network."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from pathlib import Path
+from typing import TypeVar
+
+from thgs.errors import ThgsError
+
+__all__ = ["load_local_model", "quietly"]
+
+Model = TypeVar("Model")
+
+
+def quietly(load: Callable[[], Model]) -> Model:
+    """Run ``load()`` without transformers' weight-loading progress bar (only the CLI shows
+    progress)."""
+    try:
+        from transformers.utils import logging as transformers_logging
+    except ImportError:
+        return load()
+    enabled = transformers_logging.is_progress_bar_enabled()
+    transformers_logging.disable_progress_bar()
+    try:
+        return load()
+    finally:
+        if enabled:
+            transformers_logging.enable_progress_bar()
+
+
+def load_local_model(
+    load: Callable[[str], Model],
+    model_id: str,
+    model_path: str | os.PathLike[str] | None,
+    *,
+    what: str,
+    hint: str,
+) -> tuple[Model, str]:
+    """Load a model with ``load(source)`` (which must pass ``local_files_only=True``).
+
+    Args:
+        load: reads the model from ``source``, a folder path or a model id.
+        model_id: the Hugging Face model id, looked up in the cache without ``model_path``.
+        model_path: a local folder in Hugging Face format, instead of the cache.
+        what: the model's kind in messages, e.g. "CLIP" or "SAM".
+        hint: how the user passes a folder, e.g. "--sam PATH".
+
+    Returns:
+        ``(model, source)``.
+
+    Raises:
+        ThgsError: ``model_path`` has no config.json, or the weights are not found (the message
+            names the model, where it was looked for and the command that fetches it).
+    """
+    if model_path is not None and not (Path(model_path) / "config.json").is_file():
+        raise ThgsError(f"{model_path}: not a Hugging Face model folder (no config.json)")
+    source = str(model_path) if model_path is not None else model_id
+    try:
+        return quietly(lambda: load(source)), source
+    except OSError as error:
+        raise ThgsError(
+            f"{what} weights for {model_id!r} not found "
+            + (f"in {model_path}" if model_path is not None else "in the Hugging Face cache")
+            + f". On a machine with internet run `hf download {model_id}` (it fills "
+            "~/.cache/huggingface, or $HF_HOME) and copy that cache here, or pass a local "
+            f"folder with the model in Hugging Face format ({hint})"
+        ) from error
