@@ -9,16 +9,17 @@ import tyro
 
 from thgs.cli._console import setup_logging, stderr, stdout
 from thgs.errors import InputError
+from thgs.text import LANGSPLAT_SPACE
 
 __all__ = ["preprocess"]
 
 DTYPES = ("float32", "bfloat16", "float16")
 
 
-def _model_location(value: str) -> tuple[str, Path | None]:
+def _local_folder(value: str) -> Path | None:
     """A --sam/--clip value: an existing folder is a local model, anything else a model id."""
     path = Path(value).expanduser()
-    return (value, path) if path.is_dir() else (value, None)
+    return path if path.is_dir() else None
 
 
 def preprocess(
@@ -28,7 +29,7 @@ def preprocess(
     out: Annotated[Path | None, tyro.conf.arg(aliases=("-o",))] = None,
     images: str = "images",
     sam: str = "facebook/sam-vit-huge",
-    clip: str = "laion/CLIP-ViT-B-16-laion2B-s34B-b88K",
+    clip: str = LANGSPLAT_SPACE,
     space: str | None = None,
     device: str = "cpu",
     dtype: Literal["float32", "bfloat16", "float16"] = "float32",
@@ -99,12 +100,10 @@ def preprocess(
     except ValueError as error:
         raise InputError("options", str(error)) from error
     torch_dtype = getattr(torch, dtype)
-    sam_id, sam_path = _model_location(sam)
-    clip_id, clip_path = _model_location(clip)
-    if clip_path is not None:
-        clip_id = space or "laion/CLIP-ViT-B-16-laion2B-s34B-b88K"
-    segmenter = PointSegmenter(sam_id, sam_path, device=device, dtype=torch_dtype)
-    encoder = CLIPImageEncoder(clip_id, clip_path, device=device, dtype=torch_dtype)
+    clip_path = _local_folder(clip)
+    clip_space = clip if clip_path is None else (space or LANGSPLAT_SPACE)
+    segmenter = PointSegmenter(sam, _local_folder(sam), device=device, dtype=torch_dtype)
+    encoder = CLIPImageEncoder(clip_space, clip_path, device=device, dtype=torch_dtype)
     stdout.print(
         f"{len(jobs)} images → {output}; SAM {segmenter.name} ({segmenter.kind}), "
         f"CLIP {encoder.space} ({encoder.dim}-D), {device}"

@@ -42,6 +42,7 @@ from thgs.guidance.preprocess.clip_features import CLIPImageEncoder, mask_featur
 from thgs.guidance.preprocess.generator import MaskGeneratorConfig, generate_masks, segment_map
 from thgs.guidance.preprocess.sam import PointSegmenter
 from thgs.scene import Cameras, find_images
+from thgs.scene._json import load_json
 
 __all__ = [
     "MANIFEST_FILE",
@@ -126,8 +127,14 @@ def langsplat_size(
     return int(width / scale), int(height / scale)
 
 
-def read_image(path: str | os.PathLike[str], size: tuple[int, int] | None = None) -> np.ndarray:
-    """An image as [H, W, 3] uint8 RGB, resized to ``size`` = (width, height) if given.
+def read_image(
+    path: str | os.PathLike[str],
+    size: tuple[int, int] | None = None,
+    *,
+    max_height: int | None = None,
+) -> np.ndarray:
+    """An image as [H, W, 3] uint8 RGB, resized to ``size`` = (width, height) if given, else
+    to LangSplat's size under ``max_height`` if that is given (:func:`langsplat_size`).
 
     Resizing is bilinear with antialiasing (PIL); an alpha channel is dropped.
 
@@ -138,6 +145,8 @@ def read_image(path: str | os.PathLike[str], size: tuple[int, int] | None = None
     try:
         with Image.open(path) as image:
             image = image.convert("RGB")
+            if size is None and max_height is not None:
+                size = langsplat_size(*image.size, max_height=max_height)
             if size is not None and image.size != tuple(size):
                 image = image.resize(tuple(size), Image.BILINEAR)
             return np.array(image)
@@ -260,8 +269,6 @@ def _check_or_write_manifest(output: Path, manifest: dict, overwrite: bool) -> N
             "pass overwrite to replace them",
         )
     if path.is_file() and not overwrite:
-        from thgs.scene._json import load_json
-
         previous = load_json(path)
         if previous != json.loads(json.dumps(manifest)):
             raise InputError(
@@ -322,11 +329,7 @@ def preprocess_images(
                 on_image(job.stem, None)
             continue
         start = time.perf_counter()
-        image = read_image(job.path, job.size)
-        if job.size is None:
-            size = langsplat_size(image.shape[1], image.shape[0], max_height=config.max_height)
-            if size != (image.shape[1], image.shape[0]):
-                image = read_image(job.path, size)
+        image = read_image(job.path, job.size, max_height=config.max_height)
         guidance = preprocess_image(image, job.stem, segmenter, encoder, config)
         write_view_guidance(output, guidance)
         counts += [len(guidance.level_ids(level)) for level in range(len(LEVELS))]
