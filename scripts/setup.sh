@@ -18,6 +18,26 @@ constraints=$root/scripts/constraints.txt
 # CPU machine it is installed too, for the tests against its pure-torch projection.
 extras=${THGS_EXTRAS:-models,viewer,gpu,demo,bench,dev}
 
+# The browser test (tests/test_viewer_browser.py) drives Debian's Chromium through Playwright.
+# Install it where apt can (as root, or with password-less sudo); THGS_CHROMIUM=0 skips this.
+# Without it, that one test is skipped and says why.
+if [[ ${THGS_CHROMIUM:-1} != 0 && ! -x /usr/bin/chromium ]] && command -v apt-get >/dev/null; then
+  if [[ $(id -u) == 0 ]]; then
+    apt=(env DEBIAN_FRONTEND=noninteractive apt-get -y -q)
+  elif command -v sudo >/dev/null && sudo -n true 2>/dev/null; then
+    apt=(sudo -n env DEBIAN_FRONTEND=noninteractive apt-get -y -q)
+  else
+    apt=()
+  fi
+  echo "setup: Chromium for the browser test (apt: chromium, chromium-driver)"
+  if [[ ${#apt[@]} == 0 ]] \
+     || ! { "${apt[@]}" install chromium chromium-driver >/dev/null 2>&1 \
+            || { "${apt[@]}" update >/dev/null 2>&1 \
+                 && "${apt[@]}" install chromium chromium-driver >/dev/null 2>&1; }; }; then
+    echo "setup: could not install Chromium (needs root or sudo); the browser test will be skipped"
+  fi
+fi
+
 stamp=$venv/.thgs-setup
 inputs=$(cat "$root/pyproject.toml" "$constraints" "$root/scripts/setup.sh"; echo "extras=$extras")
 digest=$(printf '%s' "$inputs" | sha256sum | cut -d' ' -f1)

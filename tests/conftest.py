@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from thgs import Cameras, Gaussians
+from thgs.cli import entrypoint
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"
@@ -81,3 +82,26 @@ def random_cameras(m: int, *, seed: int = 0, centred: bool = False) -> Cameras:
         heights=torch.tensor(heights),
         names=tuple(f"view_{i:03d}.png" for i in range(m)),
     ).check()
+
+
+@pytest.fixture(scope="session")
+def small_dataset(tmp_path_factory):
+    """A reduced synthetic dataset written by `thgs synth` (4,000 Gaussians, 8 views)."""
+    folder = tmp_path_factory.mktemp("synth") / "scene"
+    argv = ["synth", "synth-small", str(folder), "--gaussians", "4000", "--views", "8"]
+    try:
+        entrypoint(argv)
+    except SystemExit as exc:  # pragma: no cover - the command returns normally
+        assert not exc.code
+    return folder
+
+
+@pytest.fixture(scope="session")
+def small_field(small_dataset, tmp_path_factory):
+    """The small dataset's field, built by `thgs build` (which records where the scene is)."""
+    out = tmp_path_factory.mktemp("field") / "scene.thgs"
+    try:
+        entrypoint(["build", str(small_dataset), "-o", str(out)])
+    except SystemExit as exc:  # pragma: no cover - the command returns normally
+        assert not exc.code
+    return out

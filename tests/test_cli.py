@@ -84,18 +84,6 @@ def test_console_script_on_bundled_sample():
     assert "1,000 (3DGS, SH degree 3" in result.stdout
 
 
-@pytest.fixture(scope="module")
-def small_dataset(tmp_path_factory):
-    """A reduced synthetic dataset written by `thgs synth` (4,000 Gaussians, 8 views)."""
-    folder = tmp_path_factory.mktemp("synth") / "scene"
-    entrypoint_args = ["synth", "synth-small", str(folder), "--gaussians", "4000", "--views", "8"]
-    try:
-        entrypoint(entrypoint_args)
-    except SystemExit as exc:  # pragma: no cover - the command returns normally
-        assert not exc.code
-    return folder
-
-
 def test_build_writes_a_field_of_the_scene(small_dataset, tmp_path, capsys):
     from thgs import load_scene
     from thgs.field import load_field, scene_fingerprint
@@ -174,17 +162,6 @@ def test_console_script_demo(tmp_path):
     assert result.returncode == 0, result.stderr
     assert "text queries" in result.stdout
     assert (tmp_path / "cache" / "synth-small-seed0-3000g-6v" / "synthetic.json").is_file()
-
-
-@pytest.fixture(scope="module")
-def small_field(small_dataset, tmp_path_factory):
-    """The small dataset's field, built by `thgs build` (which records where the scene is)."""
-    out = tmp_path_factory.mktemp("field") / "scene.thgs"
-    try:
-        entrypoint(["build", str(small_dataset), "-o", str(out)])
-    except SystemExit as exc:  # pragma: no cover - the command returns normally
-        assert not exc.code
-    return out
 
 
 def test_query_prints_regions_and_writes_masks(small_dataset, small_field, tmp_path, capsys):

@@ -10,6 +10,8 @@ interrupted export never leaves a half-written file behind.
   region's colour at one level (DC term set, higher SH bands zeroed, so the colour does not
   change with the view).
 - :func:`write_labels` — per-Gaussian region ids: ``.npy`` (int32 [N] or [N, L]) or ``.json``.
+- :func:`write_selection` — one selection as a set: its PLY, its Gaussians' region ids and
+  indices, and a JSON description (what the viewer's export button writes).
 - :func:`write_mask_png` — a 2D mask as an 8-bit PNG (255 = selected); :func:`write_map_png`
   values in [0, 1] (a relevancy map, an RGB picture) as an 8-bit PNG.
 - :func:`write_json` — any JSON value, UTF-8, indented.
@@ -41,6 +43,7 @@ __all__ = [
     "write_map_png",
     "write_mask_png",
     "write_region_ply",
+    "write_selection",
     "write_selection_ply",
 ]
 
@@ -192,3 +195,73 @@ def write_json(path: str | os.PathLike[str], value: Any, *, indent: int | None =
         raise InputError(Path(path), f"cannot be written as JSON: {error}") from error
     with atomic_output(path, "w") as handle:
         handle.write(text + "\n")
+
+
+def write_selection(
+    folder: str | os.PathLike[str],
+    name: str,
+    gaussians: Gaussians,
+    field: SemanticField,
+    selected: np.ndarray,
+    description: dict[str, Any] | None = None,
+) -> list[Path]:
+    """Write one selection to ``folder`` as four files named after ``name``.
+
+    - ``<name>.ply``: the selected Gaussians in the input's PLY layout, as
+      :func:`write_selection_ply` writes them;
+    - ``<name>-labels.npy``: int32 [M, 4], the region ids of those Gaussians at levels 0..3, row
+      i for the PLY's vertex i;
+    - ``<name>-indices.npy``: int64 [M], their indices in the scene;
+    - ``<name>.json``: ``description`` plus the Gaussian count, the levels' names and the files,
+      written last.
+
+    Each file is written atomically; if one fails, the ones this call already wrote are removed,
+    so the folder holds either the whole set or none of it.
+
+    Returns:
+        the four paths, in the order above.
+
+    Raises:
+        InputError: a field of another size, an empty or malformed selection, or a folder that
+            cannot be created or written (the message names it and the system's reason).
+    """
+    folder = Path(folder)
+    if len(field) != len(gaussians):
+        raise InputError(
+            folder, f"the field has {len(field)} Gaussians, the scene {len(gaussians)}"
+        )
+    selected = _checked_selection(selected, len(gaussians))
+    if not selected.any():
+        raise InputError(folder, "nothing is selected, so there is nothing to write")
+    index = np.flatnonzero(selected)
+    paths = [
+        folder / f"{name}.ply",
+        folder / f"{name}-labels.npy",
+        folder / f"{name}-indices.npy",
+        folder / f"{name}.json",
+    ]
+    summary = {
+        **(description or {}),
+        "gaussians": int(index.size),
+        "levels": list(FIELD_LEVELS),
+        "files": [path.name for path in paths[:3]],
+    }
+    written: list[Path] = []
+    try:
+        write_ply(paths[0], gaussians.select(index))
+        written.append(paths[0])
+        for path, array in zip(paths[1:3], (field.labels[index].astype(np.int32), index)):
+            buffer = io.BytesIO()
+            np.save(buffer, np.ascontiguousarray(array))
+            with atomic_output(path) as handle:
+                handle.write(buffer.getvalue())
+            written.append(path)
+        write_json(paths[3], summary)
+    except BaseException as error:
+        for path in written:
+            path.unlink(missing_ok=True)
+        if isinstance(error, OSError):
+            reason = error.strerror or str(error)
+            raise InputError(folder, f"cannot write the selection there: {reason}") from error
+        raise
+    return paths

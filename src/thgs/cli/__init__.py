@@ -13,6 +13,7 @@ from thgs.cli.evaluate import evaluate, evaluate_mean
 from thgs.cli.preprocess import preprocess
 from thgs.cli.query import export, pick, query
 from thgs.cli.scene import info, synth
+from thgs.cli.view import view
 from thgs.errors import ThgsError
 
 __all__ = [
@@ -28,6 +29,7 @@ __all__ = [
     "preprocess",
     "query",
     "synth",
+    "view",
 ]
 
 
@@ -42,6 +44,7 @@ def entrypoint(argv: list[str] | None = None) -> None:
                 "query": query,
                 "pick": pick,
                 "export": export,
+                "view": view,
                 "eval": evaluate,
                 "eval-mean": evaluate_mean,
                 "info": info,

@@ -1,0 +1,70 @@
+"""``thgs view``: the browser viewer."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Annotated, Literal
+
+import tyro
+
+from thgs.cli._console import setup_logging, stderr, stdout
+
+__all__ = ["view"]
+
+
+def view(
+    field: Annotated[Path, tyro.conf.arg(metavar="FIELD")],
+    /,
+    *,
+    host: str = "127.0.0.1",
+    port: int = 8080,
+    scene: Path | None = None,
+    level: Literal[1, 2, 3] = 3,
+    mode: Literal["best", "threshold", "paper"] = "best",
+    threshold: float | None = None,
+    text_model: Path | None = None,
+    verbose: bool = False,
+) -> None:
+    """Explore a semantic field in the browser: text queries, click-to-pick, climbing the
+    hierarchy, 2D masks, exports.
+
+    Serves a viser app until Ctrl-C. Errors (a field that does not match its scene, a port in
+    use, an export folder that cannot be written) are shown in the viewer and here; the server
+    keeps running.
+
+    Args:
+        field: the field file (thgs build).
+        host: the address to listen on; the default serves this machine only. 0.0.0.0 serves
+            every network interface: anyone who can reach the port can see the scene and write
+            exports where this process may write.
+        port: the port; the next free one if it is taken.
+        scene: the scene the field was built on, if not where the field says.
+        level: the level shown first: 1 sub-parts, 2 parts, 3 objects.
+        mode: how a query selects: best (the best region of the level), threshold (every region
+            of the level above --threshold) or paper (top 3 of parts and objects).
+        threshold: relevancy for the threshold mode (default: the embedding space's).
+        text_model: a local folder with the text model, instead of the default location.
+        verbose: log what is loaded and every action.
+    """
+    from thgs.viewer.app import start_viewer, viewer_url
+    from thgs.viewer.state import ViewerConfig
+
+    setup_logging(verbose)
+    config = ViewerConfig(level=level, mode=mode, threshold=threshold).check()
+    app = start_viewer(
+        field, scene=scene, host=host, port=port, text_model=text_model, config=config
+    )
+    try:
+        for note in app.notes:
+            stderr.print(f"[yellow]note:[/] {note}", highlight=False)
+        if app.problem is not None:
+            stderr.print(f"[bold red]error:[/] {app.problem}", highlight=False)
+        count = f"{len(app.state):,} Gaussians" if app.state is not None else "no field open"
+        stdout.print(f"thgs view: {viewer_url(app, host)} ({count}); Ctrl-C to stop")
+        while True:
+            time.sleep(1.0)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        app.stop()

@@ -1,0 +1,176 @@
+"""The viser app on a real server, driven from Python (GUI values set as a browser would), and
+``thgs view`` as a process; bad input never stops the server."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from thgs.viewer.app import start_viewer
+from thgs.viewer.splats import pack_rgba
+
+
+def _serves(port: int) -> bool:
+    with urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=10) as response:
+        return response.status == 200 and b"<html" in response.read().lower()
+
+
+@pytest.fixture
+def app(small_field):
+    app = start_viewer(small_field, port=0)
+    yield app
+    app.stop()
+
+
+def _press(button) -> None:
+    button.value = True  # what a click from a browser does; callbacks run with no client
+
+
+def test_search_colours_only_the_chunks_that_change(small_field):
+    from thgs.viewer.state import ViewerConfig
+
+    app = start_viewer(small_field, port=0, config=ViewerConfig(chunk_size=500))
+    try:
+        state = app.state
+        assert app.problem is None and state is not None and app.splats.chunk_count == 8
+        np.testing.assert_array_equal(app.splats.rgba(), pack_rgba(*state.colors()))
+        app.query_text.value = "teddy bear"
+        _press(app.search)
+        highlight = state.highlight
+        assert highlight.kind == "query" and highlight.text == "teddy bear"
+        assert "**teddy bear**" in app.results.content
+        np.testing.assert_array_equal(app.splats.rgba(), pack_rgba(*state.colors()))
+        # a pick of another object re-sends only the chunks holding either object
+        sent = app.splats.bytes_sent
+        objects = state.field.labels[:, 3]
+        other = int(objects[~highlight.gaussians][0])
+        before = pack_rgba(*state.colors())
+        state._select_region(3, other, None)
+        app.refresh()
+        changed = np.flatnonzero((pack_rgba(*state.colors()) != before).any(axis=1))
+        position = np.empty(len(state), np.int64)
+        position[app.splats.order] = np.arange(len(state))
+        chunks = np.unique(position[changed] // 500)
+        assert 0 < chunks.size < app.splats.chunk_count
+        assert app.splats.bytes_sent - sent == 32 * 500 * chunks.size
+        assert app.hierarchy.content.startswith(f"Selected: **object {other}**")
+    finally:
+        app.stop()
+
+
+def test_gui_controls_drive_the_state(app, tmp_path):
+    state = app.state
+    app.level.value = "2 part"
+    assert state.level == 2
+    app.mode.value = "threshold"
+    app.threshold.value = 0.9
+    assert (state.mode, state.threshold) == ("threshold", 0.9)
+    app.query_text.value = "mug"
+    _press(app.search)
+    assert all(level == 2 and score >= 0.9 for level, _, score in state.highlight.regions)
+    _press(app.parent)
+    assert state.level == 3 and app.level.value == "3 object"
+    app.colors.value = "regions"
+    assert state.color == "regions"
+    np.testing.assert_array_equal(app.splats.rgba(), pack_rgba(*state.colors()))
+    app.export_folder.value = str(tmp_path / "out")
+    _press(app.export_button)
+    assert app.problem is None
+    assert sorted(p.name for p in (tmp_path / "out").iterdir())[0].endswith("-indices.npy")
+    _press(app.clear)
+    assert state.highlight is None
+
+
+def test_an_unwritable_export_folder_is_reported_and_the_server_keeps_running(app, tmp_path):
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    app.query_text.value = "mug"
+    _press(app.search)
+    app.export_folder.value = str(blocker / "exports")
+    _press(app.export_button)
+    assert "cannot write the selection there" in app.problem
+    assert str(blocker / "exports") in app.problem and "Problem:" in app.status.content
+    assert _serves(app.server.get_port())
+    app.export_folder.value = str(tmp_path / "exports")
+    _press(app.export_button)
+    assert (tmp_path / "exports" / "mug.ply").is_file()
+
+
+def test_a_field_of_another_scene_is_reported_and_another_field_can_be_opened(
+    small_field, tmp_path
+):
+    from thgs.cli import entrypoint
+
+    other = tmp_path / "other"
+    try:
+        entrypoint(["synth", "synth-small", str(other), "--gaussians", "2000", "--views", "4"])
+    except SystemExit as exc:  # pragma: no cover - the command returns normally
+        assert not exc.code
+    app = start_viewer(small_field, scene=other, port=0)
+    try:
+        assert app.state is None
+        assert "4000 Gaussians but the scene" in app.problem and "2000" in app.problem
+        assert "Problem:" in app.status.content
+        assert _serves(app.server.get_port())
+        app.scene_path = None
+        app.field_path.value = str(small_field)
+        _press(app.open_button)
+        assert app.problem is None and app.state is not None and len(app.state) == 4000
+        app.field_path.value = str(tmp_path / "missing.thgs")
+        _press(app.open_button)
+        assert "missing.thgs" in app.problem and len(app.state) == 4000
+    finally:
+        app.stop()
+
+
+def test_a_port_in_use_moves_to_the_next_free_one(small_field):
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        app = start_viewer(small_field, port=port)
+        try:
+            bound = app.server.get_port()
+            assert bound != port
+            assert app.notes == [f"port {port} is in use; serving on port {bound}"]
+            assert f"port {port} is in use" in app.status.content
+            assert _serves(bound)
+        finally:
+            app.stop()
+
+
+def test_thgs_view_serves_until_interrupted(small_field):
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    executable = shutil.which("thgs", path=str(Path(sys.executable).parent))
+    if executable is None:
+        pytest.skip("the thgs console script is not installed next to this Python")
+    process = subprocess.Popen(
+        [executable, "view", str(small_field), "--port", str(port)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    )
+    try:
+        line = process.stdout.readline()
+        assert line.startswith(f"thgs view: http://127.0.0.1:{port} (4,000 Gaussians)"), (
+            line + process.stderr.read() if process.poll() is not None else line
+        )
+        assert _serves(port)
+        process.send_signal(signal.SIGINT)
+        assert process.wait(timeout=30) == 0
+        assert "viser" not in process.stdout.read()
+    finally:
+        if process.poll() is None:
+            process.kill()
