@@ -88,6 +88,9 @@ def test_gui_controls_drive_the_state(app, tmp_path):
     assert sorted(p.name for p in (tmp_path / "out").iterdir())[0].endswith("-indices.npy")
     _press(app.clear)
     assert state.highlight is None
+    assert app.views.options[1:] == app.scene.cameras.stems
+    app.views.value = app.scene.cameras.stems[2]  # no browser connected: nothing to move
+    assert app.problem is None
 
 
 def test_an_unwritable_export_folder_is_reported_and_the_server_keeps_running(app, tmp_path):

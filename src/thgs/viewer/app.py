@@ -388,7 +388,11 @@ class ViewerApp:
         if not highlight.regions:
             head = f"**{highlight.text}**: nothing relevant enough"
         else:
-            head = f"**{highlight.text}**: {len(highlight.regions)} regions, {count:,} Gaussians"
+            plural = "s" if len(highlight.regions) > 1 else ""
+            head = (
+                f"**{highlight.text}**: {len(highlight.regions)} region{plural}, "
+                f"{count:,} Gaussians"
+            )
         selected = {(level, region) for level, region, _ in highlight.regions}
         rows = [
             f"| {'✓' if (level, region) in selected else ''} | {FIELD_LEVELS[level]} {region} "
