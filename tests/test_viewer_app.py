@@ -165,15 +165,36 @@ def test_thgs_view_serves_until_interrupted(small_field):
         text=True,
         env={**os.environ, "PYTHONUNBUFFERED": "1"},
     )
+    second = None
     try:
         line = process.stdout.readline()
         assert line.startswith(f"thgs view: http://127.0.0.1:{port} (4,000 Gaussians)"), (
             line + process.stderr.read() if process.poll() is not None else line
         )
         assert _serves(port)
+        # a second viewer on the same port, of a field that does not exist: both say so, and
+        # it serves anyway
+        missing = small_field.parent / "missing.thgs"
+        second = subprocess.Popen(
+            [executable, "view", str(missing), "--port", str(port)],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            env={**os.environ, "PYTHONUNBUFFERED": "1", "COLUMNS": "200"},
+        )
+        line = second.stdout.readline()
+        assert line.startswith("thgs view: http://127.0.0.1:") and "(no field open)" in line
+        moved = int(line.split(":")[3].split()[0])
+        assert moved != port and _serves(moved)
+        second.send_signal(signal.SIGINT)
+        assert second.wait(timeout=30) == 0
+        err = " ".join(second.stderr.read().split())
+        assert f"port {port} is in use; serving on port {moved}" in err
+        assert f"{missing}: semantic field file not found" in err
         process.send_signal(signal.SIGINT)
         assert process.wait(timeout=30) == 0
         assert "viser" not in process.stdout.read()
     finally:
-        if process.poll() is None:
-            process.kill()
+        for running in (process, second):
+            if running is not None and running.poll() is None:
+                running.kill()

@@ -111,6 +111,7 @@ def build(
     save_field(out, field)
     stdout.print(_counts_table(f"thgs build {scene}", field.region_counts, field.timings))
     stdout.print(f"wrote {out} ({out.stat().st_size / 1e6:.1f} MB, space {space})")
+    stdout.print(f"explore it in a browser: thgs view {out}")
 
 
 def demo(
@@ -189,3 +190,4 @@ def demo(
         f"wrote {len(report.files)} files to {out}/ (report.md, levels.png, query-*.png, "
         "field.thgs)"
     )
+    stdout.print(f"explore it in a browser: thgs view {out / 'field.thgs'}")

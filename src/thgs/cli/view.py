@@ -8,7 +8,7 @@ from typing import Annotated, Literal
 
 import tyro
 
-from thgs.cli._console import setup_logging, stderr, stdout
+from thgs.cli._console import setup_logging, stdout
 
 __all__ = ["view"]
 
@@ -29,9 +29,9 @@ def view(
     """Explore a semantic field in the browser: text queries, click-to-pick, climbing the
     hierarchy, 2D masks, exports.
 
-    Serves a viser app until Ctrl-C. Errors (a field that does not match its scene, a port in
-    use, an export folder that cannot be written) are shown in the viewer and here; the server
-    keeps running.
+    Serves a viser app until Ctrl-C. Problems (a field that does not match its scene, a port in
+    use, an export folder that cannot be written) are logged here and shown in the viewer; the
+    server keeps running.
 
     Args:
         field: the field file (thgs build).
@@ -56,10 +56,6 @@ def view(
         field, scene=scene, host=host, port=port, text_model=text_model, config=config
     )
     try:
-        for note in app.notes:
-            stderr.print(f"[yellow]note:[/] {note}", highlight=False)
-        if app.problem is not None:
-            stderr.print(f"[bold red]error:[/] {app.problem}", highlight=False)
         count = f"{len(app.state):,} Gaussians" if app.state is not None else "no field open"
         stdout.print(f"thgs view: {viewer_url(app, host)} ({count}); Ctrl-C to stop")
         while True:
