@@ -376,20 +376,11 @@ def test_bytes_sent_counts_32_bytes_per_gaussian_of_each_resent_chunk(server):
     assert chunks.bytes_sent == 32 * N + 32 * 7
 
 
-def test_set_visible_and_remove(server, sent):
+def test_remove(server, sent):
     data = scene_arrays()
     chunks = SplatChunks(server.scene, "/splats", **data, chunk_size=10)
     names = {f"/splats/{i:04d}" for i in range(4)}
     assert names | {"/splats"} <= set(server.scene._handle_from_node_name)
-
-    del sent[:]
-    chunks.set_visible(False)
-    assert not chunks.visible
-    assert all(not handle.visible for handle in chunks.handles)
-    hidden = {m.name for m in sent if type(m).__name__ == "SetSceneNodeVisibilityMessage"}
-    assert hidden == names
-    chunks.set_visible(True)
-    assert all(handle.visible for handle in chunks.handles)
 
     del sent[:]
     chunks.remove()

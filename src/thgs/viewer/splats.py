@@ -283,7 +283,6 @@ class SplatChunks:
         self._order = layout  # None for the identity
         self._bytes_sent = 0
         self._removed = False
-        self._visible = True
 
         if layout is not None:
             centers_array = centers_array[layout]
@@ -387,11 +386,6 @@ class SplatChunks:
         re-sent chunk; the initial send is not counted)."""
         return self._bytes_sent
 
-    @property
-    def visible(self) -> bool:
-        """Whether the chunks are shown (see :meth:`set_visible`)."""
-        return self._visible
-
     def _check_live(self) -> None:
         if self._removed:
             raise RuntimeError(f"the splat nodes under {self._name} have been removed")
@@ -453,13 +447,6 @@ class SplatChunks:
         rgba = np.empty_like(layout)
         rgba[self._order] = layout
         return rgba
-
-    def set_visible(self, visible: bool) -> None:
-        """Show or hide every chunk (one visibility message per chunk whose state changes)."""
-        self._check_live()
-        for handle in self._handles:
-            handle.visible = bool(visible)
-        self._visible = bool(visible)
 
     def remove(self) -> None:
         """Remove the group frame and every chunk from the scene; later calls do nothing."""
