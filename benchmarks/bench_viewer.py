@@ -53,12 +53,10 @@ def tiled(field: SemanticField, gaussians: Gaussians, copies: int):
     """``copies`` side-by-side copies of a scene and its field (x offset by 1.2 × its width)."""
     means = gaussians.means
     width = float(means[:, 0].max() - means[:, 0].min()) * 1.2
-    parts = []
-    for c in range(copies):
-        shifted = replace(gaussians, means=means + torch.tensor([c * width, 0.0, 0.0]))
-        parts.append(shifted)
+    offsets = torch.zeros(copies, 1, 3, dtype=means.dtype)
+    offsets[:, 0, 0] = width * torch.arange(copies, dtype=means.dtype)
     big = Gaussians(
-        means=torch.cat([g.means for g in parts]),
+        means=(means[None] + offsets).reshape(-1, 3),
         quats=gaussians.quats.repeat(copies, 1),
         scales=gaussians.scales.repeat(copies, 1),
         opacities=gaussians.opacities.repeat(copies),

@@ -141,10 +141,7 @@ def write_labels(
         raise InputError("levels", f"must be among 0..3, got {levels}")
     labels = field.labels[:, list(levels)]
     if path.suffix == ".npy":
-        buffer = io.BytesIO()
-        np.save(buffer, labels[:, 0] if len(levels) == 1 else np.ascontiguousarray(labels))
-        with atomic_output(path) as handle:
-            handle.write(buffer.getvalue())
+        _write_npy(path, labels[:, 0] if len(levels) == 1 else labels)
     elif path.suffix == ".json":
         write_json(
             path,
@@ -157,6 +154,14 @@ def write_labels(
         )
     else:
         raise InputError(path, "labels are written as .npy or .json")
+
+
+def _write_npy(path: Path, array: np.ndarray) -> None:
+    """Write ``array`` as a C-ordered ``.npy``, atomically."""
+    buffer = io.BytesIO()
+    np.save(buffer, np.ascontiguousarray(array))
+    with atomic_output(path) as handle:
+        handle.write(buffer.getvalue())
 
 
 def write_mask_png(path: str | os.PathLike[str], mask: np.ndarray) -> None:
@@ -251,10 +256,7 @@ def write_selection(
         write_ply(paths[0], gaussians.select(index))
         written.append(paths[0])
         for path, array in zip(paths[1:3], (field.labels[index].astype(np.int32), index)):
-            buffer = io.BytesIO()
-            np.save(buffer, np.ascontiguousarray(array))
-            with atomic_output(path) as handle:
-                handle.write(buffer.getvalue())
+            _write_npy(path, array)
             written.append(path)
         write_json(paths[3], summary)
     except BaseException as error:

@@ -353,19 +353,9 @@ class SplatChunks:
         return self._n
 
     @property
-    def name(self) -> str:
-        """Scene-node name of the group frame (with a leading ``/``)."""
-        return self._name
-
-    @property
     def chunk_count(self) -> int:
         """Number of splat nodes, ``ceil(N / chunk_size)``."""
         return len(self._handles)
-
-    @property
-    def chunk_size(self) -> int:
-        """Most Gaussians per splat node."""
-        return self._chunk_size
 
     @property
     def order(self) -> np.ndarray:
