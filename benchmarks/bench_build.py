@@ -17,20 +17,17 @@ from __future__ import annotations
 
 import numpy as np
 import torch
-from bench_partition import HashEncoder, measured, runs_in_subprocesses
+from bench_partition import HashEncoder, measured, oracle_views, runs_in_subprocesses
 
 from thgs.eval import matched_miou, purity
 from thgs.pipeline import FieldConfig, build_field
-from thgs.synthetic import OracleConfig, generate_scene, oracle_guidance, preset, render_view
+from thgs.synthetic import OracleConfig, generate_scene, preset
 
 
 def run_one(name: str, seed: int) -> dict:
     scene = generate_scene(preset(name, seed=seed))
     encoder, oracle = HashEncoder(), OracleConfig(seed=seed)
-    views = []
-    for i, stem in enumerate(scene.cameras.stems):
-        _, max_id = render_view(scene, i, (1.0, 1.0, 1.0))
-        views.append(oracle_guidance(stem, max_id, scene.hierarchy, encoder, oracle, i))
+    views = oracle_views(scene, encoder, oracle)
     truth = scene.hierarchy.labels
     results = {}
     for variant, config in {

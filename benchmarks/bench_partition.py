@@ -52,6 +52,15 @@ def measured(function: Callable, *args):
     return result, round(seconds, 2), round(peak_gib, 2)
 
 
+def oracle_views(scene, encoder, oracle: OracleConfig) -> list:
+    """The oracle's guidance for every camera of a synthetic scene, rendered on white."""
+    views = []
+    for i, stem in enumerate(scene.cameras.stems):
+        _, max_id = render_view(scene, i, (1.0, 1.0, 1.0))
+        views.append(oracle_guidance(stem, max_id, scene.hierarchy, encoder, oracle, i))
+    return views
+
+
 def graph_stages(gaussians, lifted, config: SuperpointConfig) -> tuple[np.ndarray, dict]:
     graph, knn_s, knn_gib = measured(knn_graph, gaussians, config.graph)
     (pos, neg), votes_s, votes_gib = measured(edge_counts, graph, lifted, config.reweight)
@@ -71,14 +80,7 @@ def run_one(name: str, seed: int) -> dict:
     scene, generate_s, _ = measured(generate_scene, preset(name, seed=seed))
     encoder, oracle = HashEncoder(), OracleConfig(seed=seed)
 
-    def guidance():
-        views = []
-        for i, stem in enumerate(scene.cameras.stems):
-            _, max_id = render_view(scene, i, (1.0, 1.0, 1.0))
-            views.append(oracle_guidance(stem, max_id, scene.hierarchy, encoder, oracle, i))
-        return views
-
-    views, guidance_s, _ = measured(guidance)
+    views, guidance_s, _ = measured(oracle_views, scene, encoder, oracle)
     config = SuperpointConfig()
     lifted, lift_s, lift_gib = measured(
         lift_views, scene.gaussians, scene.cameras, views, config.lift

@@ -24,11 +24,11 @@ import time
 
 import numpy as np
 import torch
-from bench_partition import runs_in_subprocesses
+from bench_partition import oracle_views, runs_in_subprocesses
 
 from thgs.pipeline import FieldConfig, build_field
 from thgs.query import FieldQuery, QueryConfig
-from thgs.synthetic import OracleConfig, generate_scene, oracle_guidance, preset, render_view
+from thgs.synthetic import OracleConfig, generate_scene, preset
 from thgs.text import MINILM_SPACE, load_text_encoder
 from thgs.views import pick, selection_masks
 
@@ -61,10 +61,7 @@ def run_one(name: str, seed: int) -> dict:
     encoder = load_text_encoder(MINILM_SPACE)
     scene = generate_scene(preset(name, seed=seed))
     oracle = OracleConfig(seed=seed)
-    views = []
-    for i, stem in enumerate(scene.cameras.stems):
-        _, max_id = render_view(scene, i, (1.0, 1.0, 1.0))
-        views.append(oracle_guidance(stem, max_id, scene.hierarchy, encoder, oracle, i))
+    views = oracle_views(scene, encoder, oracle)
     field = build_field(scene, views, FieldConfig.lerf(), space=encoder.space)
     names = [n for level in scene.hierarchy.names for n in level]
     hundred = prompts(names, 100)
