@@ -12,9 +12,10 @@ from test_pipeline import Posed, flat_square, oracle_views, ring_cameras
 from thgs.errors import InputError
 from thgs.eval import matched_miou
 from thgs.eval.ground_truth import Hierarchy
+from thgs.eval.metrics import best_iou
 from thgs.field import load_field, save_field, scene_fingerprint
 from thgs.hierarchy import MergeConfig
-from thgs.pipeline import FieldConfig, build_field
+from thgs.pipeline import FieldConfig, build_field, build_levels, lift_scene
 from thgs.synthetic import OracleConfig, generate_scene, preset
 
 SPACE = "test/hash"
@@ -103,10 +104,17 @@ def test_field_records_provenance_and_round_trips(tiled, tiled_field, tmp_path):
         "level 2",
         "level 3",
         "absorb",
+        "repeats",
         "features",
     ]
     assert field.config == json.loads(json.dumps(FieldConfig().to_json()))
     assert field.config["merge"]["thresholds"] == [0.9, 0.7, 0.7]
+    assert field.config["repeats"] == {
+        "enabled": True,
+        "similarity": 0.8,
+        "margin": 0.1,
+        "neighbors": 8,
+    }
     save_field(tmp_path / "tiled.thgs", field)
     loaded = load_field(tmp_path / "tiled.thgs")
     np.testing.assert_array_equal(loaded.labels, field.labels)
@@ -155,6 +163,24 @@ def test_reduced_synthetic_scene_builds_a_nested_field():
     assert counts[0] > counts[1] > counts[2] > counts[3] >= 9
     # objects are the easiest level; measured 0.83–0.90 on synth-small (docs/field.md)
     assert matched_miou(field.labels[:, 3], synthetic.hierarchy.labels[:, 2]) >= 0.7
+
+
+def test_a_tables_four_legs_become_one_part():
+    # the legs touch only through the top and no mask shows them together: merging leaves one
+    # part per leg (IoU 0.25 with "table legs"), the grouping of repeated parts joins them
+    synthetic = generate_scene(preset("synth-small", gaussians=20_000, views=12))
+    guidance = oracle_views(synthetic, synthetic.hierarchy, OracleConfig(severity=0.0))
+    config = FieldConfig.lerf()
+    lifted = lift_scene(synthetic, guidance, config.superpoints.lift)
+    legs = synthetic.hierarchy.names[1].index("table legs")
+    scores = {}
+    for grouped in (True, False):
+        repeats = replace(config.repeats, enabled=grouped)
+        levels = build_levels(lifted, guidance, replace(config, repeats=repeats))
+        scores[grouped] = best_iou(levels.labels[:, 2], synthetic.hierarchy.labels[:, 1])[legs]
+        nested = levels.parents[1][levels.labels[:, 1]]
+        np.testing.assert_array_equal(levels.labels[:, 2], nested)
+    assert scores[True] >= 0.8 and scores[False] <= 0.3
 
 
 # --- bad input ---------------------------------------------------------------------------------

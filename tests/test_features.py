@@ -48,14 +48,18 @@ def reference_features(labels, level, lifted, guidance, config, regions, centres
             features = masks.features.astype(np.float64)
             total = np.zeros(dim)
             if config.mode == "shares":
-                marks = [int(view.labels[row[i], level]) for i in seen]
-                marks = [m for m in marks if m >= 0]
-                for mask in sorted(set(marks)):
-                    share = marks.count(mask) / len(marks)
+                counted = [i for i in seen if view.max_weights[row[i]] >= config.min_max_weight]
+                power = config.visibility_power
+                weigh = {i: float(view.max_weights[row[i]]) ** power for i in seen}
+                marks = {i: int(view.labels[row[i], level]) for i in counted}
+                marks = {i: m for i, m in marks.items() if m >= 0}
+                labelled = sum(weigh[i] for i in marks)
+                for mask in sorted(set(marks.values())):
+                    share = sum(weigh[i] for i, m in marks.items() if m == mask) / labelled
                     if share >= config.min_share:
                         total += share * features[mask]
-                visible = [i for i in seen if view.max_weights[row[i]] > config.visible_weight]
-                weight = len(visible) / len(members)
+                visible = [i for i in counted if view.max_weights[row[i]] > config.visible_weight]
+                weight = sum(weigh[i] for i in visible) / len(members)
             else:
                 used = [i for i in seen if view.max_weights[row[i]] > config.centre_weight]
                 weight = len(used) / len(members)
@@ -154,9 +158,11 @@ def known_centres(monkeypatch):
 @pytest.mark.parametrize("seed", range(4))
 @pytest.mark.parametrize("mode", MODES)
 @pytest.mark.parametrize("level", [1, 3])
-def test_matches_the_reference_on_random_views(seed, mode, level, known_centres):
+@pytest.mark.parametrize("authors", [False, True])
+def test_matches_the_reference_on_random_views(seed, mode, level, authors, known_centres):
     case = random_case(seed)
     config = FeatureConfig(mode=mode, min_visible=0.2)
+    config = config.as_reference() if authors else config
     known_centres(case.centres)
     features, seen = region_features(
         case.labels,
@@ -264,12 +270,30 @@ def test_two_masks_by_hand():
     view0 = one_level_view(np.arange(8), [0, 0, 0, 0, 1, 1, 1, 2], [0.5] * 6 + [1e-5] * 2, level=2)
     view1 = one_level_view(np.arange(12), [0] * 10 + [-1] * 2, [0.9] * 12, level=2)
     guidance = [guidance_with([a, b, c]), guidance_with([b, a], "view_1")]
-    features, seen = region_features(labels, 2, [view0, view1], guidance)
+    reference = FeatureConfig().as_reference()
+    features, seen = region_features(labels, 2, [view0, view1], guidance, reference)
     np.testing.assert_allclose(features[0], _unit(0.48 * a + 1.36 * b), atol=1e-6)
     np.testing.assert_array_equal(seen, [True, False])
     # a share of exactly min_share is kept; without the drop rule c would enter
-    kept, _ = region_features(labels, 2, [view0], guidance[:1], FeatureConfig(min_share=0.125))
+    kept, _ = region_features(
+        labels, 2, [view0], guidance[:1], dataclasses.replace(reference, min_share=0.125)
+    )
     np.testing.assert_allclose(kept[0], _unit(4 * a + 3 * b + c), atol=1e-6)
+
+
+def test_faintly_seen_gaussians_weigh_little_by_hand():
+    # ours: a label counts where max w ≥ 0.05 and weighs (max w)². A region of 10 Gaussians,
+    # one view: 6 seen well (max w 1.0) under mask a, 3 seen faintly (0.2) under mask b (an
+    # occluder's), 1 at 0.01 under b (not counted). Shares: a 6 / 6.12, b 0.12 / 6.12 < 0.3
+    # (dropped); p = 6.12 / 10. The reference keeps b at 4 / 10 of the labels.
+    a, b = np.eye(3)[:2]
+    labels = np.zeros(10, dtype=np.int32)
+    view = one_level_view(np.arange(10), [0] * 6 + [1] * 4, [1.0] * 6 + [0.2] * 3 + [0.01])
+    guidance = [guidance_with([a, b])]
+    ours, _ = region_features(labels, 1, [view], guidance, FeatureConfig.lerf())
+    np.testing.assert_allclose(ours[0], a, atol=1e-6)
+    theirs, _ = region_features(labels, 1, [view], guidance, FeatureConfig.lerf().as_reference())
+    np.testing.assert_allclose(theirs[0], _unit(0.6 * a + 0.4 * b), atol=1e-6)
 
 
 def front_camera(count: int = 1) -> Cameras:
@@ -437,6 +461,8 @@ def test_presets():
     assert FeatureConfig.lerf().mode == "shares" and FeatureConfig.lerf().min_share == 0.3
     dovs = FeatureConfig.three_dovs()
     assert (dovs.mode, dovs.centre_weight, dovs.min_visible) == ("centres", 0.01, 0.1)
+    authors = FeatureConfig.lerf().as_reference()
+    assert (authors.min_max_weight, authors.visibility_power) == (0.0, 0.0)
 
 
 @pytest.mark.parametrize(
@@ -448,6 +474,9 @@ def test_presets():
         {"min_visible": -0.1},
         {"visible_weight": 1.0},
         {"centre_weight": -1e-3},
+        {"min_max_weight": 1.0},
+        {"visibility_power": -1.0},
+        {"visibility_power": math.nan},
     ],
 )
 def test_bad_config(fields):

@@ -7,7 +7,13 @@ column). Two training-free, one-pass modes, both the reference's:
 - ``"shares"`` (its mode 2, LERF preset): per view v and region r, the share ``s_t`` of each mask
   t among r's Gaussians that carry a label in v; shares below ``min_share`` are dropped (no
   renormalisation); ``f_r += normalize(Σ_t s_t · F_v[t]) · p_r^v`` with ``p_r^v`` the share of r's
-  Gaussians visible in v (``max w > visible_weight``).
+  Gaussians visible in v (``max w > visible_weight``). **Ours weighs every Gaussian by how well
+  the view sees it**, as the merging does (:class:`thgs.hierarchy.MergeConfig`): a Gaussian
+  counts only where its ``max w`` reaches ``min_max_weight`` (0.05) and then weighs
+  ``(max w)^p`` (``visibility_power`` p = 2) in the shares and in ``p_r^v``. A Gaussian seen only
+  through an occluder carries the occluder's mask (a table's legs under its top); counted like a
+  well-seen one it pulls its region's feature towards the occluder's name. The reference counts
+  every labelled Gaussian once (:meth:`FeatureConfig.as_reference`).
 - ``"centres"`` (its mode 1, 3DOVS preset): per view, every Gaussian with ``max w >
   centre_weight`` takes the mask under its projected centre, weighted by its ``max w``; if at
   least ``min_visible`` of r's Gaussians are used in v, ``f_r += normalize(Σ w · F_v[mask]) ·
@@ -23,7 +29,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Literal
 
 import numpy as np
@@ -52,6 +58,11 @@ class FeatureConfig:
             labelled Gaussians in a view is dropped; the kept shares are not renormalised.
         visible_weight: mode shares: a Gaussian is visible in a view if its max blending weight
             ``max_x w(x)`` (unitless, in (0, 1]) exceeds this.
+        min_max_weight: mode shares: a Gaussian's label and visibility in a view count only if
+            its ``max_x w(x)`` there reaches this (ours 0.05; the reference 0).
+        visibility_power: mode shares: p: a counted Gaussian weighs ``(max_x w(x))^p`` in the
+            mask shares and in the visible share ``p_r^v`` (ours 2; the reference 0: every
+            Gaussian weighs 1).
         centre_weight: mode centres: a Gaussian is used in a view if its max blending weight
             exceeds this.
         min_visible: mode centres: a view contributes to a region only if at least this share
@@ -61,6 +72,8 @@ class FeatureConfig:
     mode: Literal["shares", "centres"] = "shares"
     min_share: float = 0.3
     visible_weight: float = 1e-4
+    min_max_weight: float = 0.05
+    visibility_power: float = 2.0
     centre_weight: float = 0.01
     min_visible: float = 0.1
 
@@ -73,20 +86,30 @@ class FeatureConfig:
             value = getattr(self, name)
             if not 0.0 <= value <= 1.0:
                 raise InputError("FeatureConfig", f"{name} must be in [0, 1], got {value}")
-        for name in ("visible_weight", "centre_weight"):
+        for name in ("visible_weight", "centre_weight", "min_max_weight"):
             value = getattr(self, name)
             if not 0.0 <= value < 1.0:
                 raise InputError("FeatureConfig", f"{name} must be in [0, 1), got {value}")
+        if not self.visibility_power >= 0:
+            raise InputError(
+                "FeatureConfig", f"visibility_power must be ≥ 0, got {self.visibility_power}"
+            )
 
     @classmethod
     def lerf(cls) -> FeatureConfig:
-        """The reference's LERF-OVS setting: mode 2 (shares ≥ 0.3, visible if max w > 1e-4)."""
+        """The reference's LERF-OVS setting: mode 2 (shares ≥ 0.3, visible if max w > 1e-4),
+        with our visibility weighting (see :meth:`as_reference`)."""
         return cls(mode="shares", min_share=0.3, visible_weight=1e-4)
 
     @classmethod
     def three_dovs(cls) -> FeatureConfig:
         """The reference's 3DOVS setting: mode 1 (centres, max w > 0.01, ≥ 10 % used)."""
         return cls(mode="centres", centre_weight=0.01, min_visible=0.1)
+
+    def as_reference(self) -> FeatureConfig:
+        """The same numbers with the authors' mode 2: every labelled Gaussian counts once,
+        however faintly the view sees it (mode centres has nothing of ours to switch off)."""
+        return replace(self, min_max_weight=0.0, visibility_power=0.0)
 
 
 def centre_masks(
@@ -248,22 +271,25 @@ def _shares_view(
 ) -> None:
     count = len(sizes)
     regions = labels[view.gaussians]
-    visible = np.bincount(
-        regions[view.max_weights > config.visible_weight], minlength=count
-    ).astype(np.float64)
-    share_visible = np.divide(visible, sizes, out=np.zeros(count), where=sizes > 0)
+    counted = view.max_weights >= config.min_max_weight
+    weights = view.max_weights.astype(np.float64) ** config.visibility_power
+    visible = counted & (view.max_weights > config.visible_weight)
+    share_visible = np.divide(
+        np.bincount(regions[visible], weights=weights[visible], minlength=count),
+        sizes,
+        out=np.zeros(count),
+        where=sizes > 0,
+    )
     masks = view.labels[:, level].astype(np.int64)
-    labelled = masks >= 0
+    labelled = counted & (masks >= 0)
     if not labelled.any():
         return
-    counts = _pooled(
-        regions[labelled], masks[labelled], np.ones(int(labelled.sum())), (count, len(features))
-    )
-    labelled_per_region = np.asarray(counts.sum(axis=1)).ravel()
-    counts.data = counts.data / np.repeat(labelled_per_region, np.diff(counts.indptr))
-    counts.data[counts.data < config.min_share] = 0.0
-    counts.eliminate_zeros()
-    _accumulate(out, counts, features, share_visible)
+    shares = _pooled(regions[labelled], masks[labelled], weights[labelled], (count, len(features)))
+    labelled_per_region = np.asarray(shares.sum(axis=1)).ravel()
+    shares.data = shares.data / np.repeat(labelled_per_region, np.diff(shares.indptr))
+    shares.data[shares.data < config.min_share] = 0.0
+    shares.eliminate_zeros()
+    _accumulate(out, shares, features, share_visible)
 
 
 def _centres_view(

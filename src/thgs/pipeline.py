@@ -31,7 +31,7 @@ from thgs.graph import (
     reweight,
 )
 from thgs.guidance import ViewGuidance
-from thgs.hierarchy import MergeConfig, merge_levels
+from thgs.hierarchy import MergeConfig, RepeatConfig, group_repeated_parts, merge_levels
 from thgs.lift import LiftConfig, ViewLift, lift_views
 from thgs.scene import Cameras, Gaussians
 
@@ -320,11 +320,14 @@ class FieldConfig:
         merge: progressive merging (:class:`thgs.hierarchy.MergeConfig`); the ``independent``
             ablation makes levels that need not nest, which a field cannot hold.
         features: region features (:class:`thgs.features.FeatureConfig`).
+        repeats: grouping an object's alike, non-touching parts into one level-2 region (ours:
+            :class:`thgs.hierarchy.RepeatConfig`); progressive merging only.
     """
 
     superpoints: SuperpointConfig = field(default_factory=SuperpointConfig)
     merge: MergeConfig = field(default_factory=MergeConfig)
     features: FeatureConfig = field(default_factory=FeatureConfig)
+    repeats: RepeatConfig = field(default_factory=RepeatConfig)
 
     @classmethod
     def lerf(cls) -> FieldConfig:
@@ -340,13 +343,17 @@ class FieldConfig:
 
     def as_reference(self) -> FieldConfig:
         """The same numbers with the authors' behaviour where ours differs: absolute vote
-        offsets, edge weights against the reweighted mean, and the reference's merging (every
+        offsets, edge weights against the reweighted mean, the reference's merging (every
         label votes with weight 1, 2-hop members count, one round per pass:
-        :meth:`thgs.hierarchy.MergeConfig.as_reference`)."""
+        :meth:`thgs.hierarchy.MergeConfig.as_reference`), its features (every labelled
+        Gaussian counts once: :meth:`thgs.features.FeatureConfig.as_reference`) and one part
+        per connected piece (no grouping of repeated parts)."""
         return replace(
             self,
             superpoints=self.superpoints.as_reference(),
             merge=self.merge.as_reference(),
+            features=self.features.as_reference(),
+            repeats=replace(self.repeats, enabled=False),
         )
 
     def to_json(self) -> dict[str, Any]:
@@ -381,6 +388,25 @@ class Levels:
     timings: dict[str, float]
 
 
+def _level_features(
+    labels: np.ndarray,
+    level: int,
+    lifted: LiftedScene,
+    guidance: Sequence[ViewGuidance],
+    config: FeatureConfig,
+) -> tuple[np.ndarray, np.ndarray]:
+    """[R_k, D] features and [R_k] seen flags of the level-``level`` regions of [N, 4] labels."""
+    return region_features(
+        labels[:, level],
+        level,
+        lifted.lifted,
+        guidance,
+        config,
+        gaussians=lifted.gaussians,
+        cameras=lifted.cameras,
+    )
+
+
 def build_levels(
     lifted: LiftedScene,
     guidance: Sequence[ViewGuidance],
@@ -408,7 +434,7 @@ def build_levels(
         if progress is not None:
             progress(name, done, 1)
 
-    gaussians, cameras = lifted.gaussians, lifted.cameras
+    gaussians = lifted.gaussians
     stage("partition", 0)
     superpoints, report = partition_lifted(gaussians, lifted.lifted, config.superpoints)
     stage("partition", 1)
@@ -416,33 +442,29 @@ def build_levels(
         logger.info("%s: %.2f s", name, report.seconds[name])
     stage("merge", 0)
     merged = merge_levels(gaussians, superpoints, lifted.lifted, config.merge)
+    merge_seconds = dict(merged.seconds)
+    if config.repeats.enabled and config.merge.mode == "progressive":
+        started = time.perf_counter()
+        parts, _ = _level_features(merged.labels, 2, lifted, guidance, config.features)
+        merged = group_repeated_parts(gaussians, merged, parts, config.repeats)
+        merge_seconds["repeats"] = time.perf_counter() - started
     stage("merge", 1)
-    for name, seconds in merged.seconds.items():
+    for name, seconds in merge_seconds.items():
         logger.info("merge %s: %.2f s", name, seconds)
     stage("features", 0)
     started = time.perf_counter()
-    features, seen = [], []
-    for level in (1, 2, 3):
-        rows, level_seen = region_features(
-            merged.labels[:, level],
-            level,
-            lifted.lifted,
-            guidance,
-            config.features,
-            gaussians=gaussians,
-            cameras=cameras,
-        )
-        features.append(rows)
-        seen.append(level_seen)
+    features, seen = zip(
+        *(_level_features(merged.labels, k, lifted, guidance, config.features) for k in (1, 2, 3))
+    )
     feature_seconds = time.perf_counter() - started
     stage("features", 1)
     logger.info("features: %.2f s", feature_seconds)
     return Levels(
         labels=merged.labels,
         parents=merged.parents,
-        features=(features[0], features[1], features[2]),
-        seen=(seen[0], seen[1], seen[2]),
-        timings={**report.seconds, **merged.seconds, "features": feature_seconds},
+        features=features,
+        seen=seen,
+        timings={**report.seconds, **merge_seconds, "features": feature_seconds},
     )
 
 
@@ -460,7 +482,7 @@ def build_field(
     (:func:`build_levels`). Each stage is logged with its wall time, and the times are stored
     in :attr:`SemanticField.timings` (``lift``, ``knn``, ``votes``, ``reweight``,
     ``partition``, ``adjacency``, ``level 1`` … ``level 3``, ``absorb`` when small regions are
-    absorbed, ``features``).
+    absorbed, ``repeats`` when repeated parts are grouped, ``features``).
 
     Args:
         scene: N Gaussians and M cameras (:func:`thgs.load_scene` with cameras, or a

@@ -3,17 +3,29 @@
 merged = merge_levels(gaussians, superpoints, lifted, MergeConfig.lerf())
 merged.labels     # [N, 4] int32 region per Gaussian at levels 0–3
 merged.parents    # per level, the parent region of each region
+merged = group_repeated_parts(gaussians, merged, part_features)   # a table's legs: one part
 """
 
 from thgs.hierarchy.adjacency import UnitGraph, gaussian_neighbors, unit_graph
-from thgs.hierarchy.merge import MergeConfig, MergedLevels, merge_levels, pair_affinity
+from thgs.hierarchy.merge import (
+    MergeConfig,
+    MergedLevels,
+    merge_levels,
+    pair_affinity,
+    parents_of,
+)
+from thgs.hierarchy.repeats import RepeatConfig, group_repeated_parts, repeated_part_pairs
 
 __all__ = [
     "MergeConfig",
     "MergedLevels",
+    "RepeatConfig",
     "UnitGraph",
     "gaussian_neighbors",
+    "group_repeated_parts",
     "merge_levels",
     "pair_affinity",
+    "parents_of",
+    "repeated_part_pairs",
     "unit_graph",
 ]

@@ -45,7 +45,7 @@ from thgs.hierarchy.adjacency import UnitGraph, gaussian_neighbors, unit_graph
 from thgs.lift import ViewLift
 from thgs.scene.gaussians import Gaussians
 
-__all__ = ["MergeConfig", "MergedLevels", "merge_levels", "pair_affinity"]
+__all__ = ["MergeConfig", "MergedLevels", "merge_levels", "pair_affinity", "parents_of"]
 
 log = logging.getLogger(__name__)
 
@@ -395,7 +395,9 @@ def _renumber_by_units(regions: np.ndarray, units: np.ndarray) -> np.ndarray:
     return rank[regions].astype(np.int32)
 
 
-def _parents(labels: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def parents_of(labels: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``parents[k − 1]`` [R_{k−1}] int32: the level-k region of each level-(k − 1) region of
+    nested [N, 4] ``labels``."""
     parents = []
     for k in range(1, 4):
         parent = np.zeros(int(labels[:, k - 1].max()) + 1, dtype=np.int32)
@@ -474,7 +476,7 @@ def merge_levels(
             levels[1] = levels[2] = regions
         seconds["absorb"] = time.perf_counter() - started
     labels = np.stack(levels, axis=1).astype(np.int32)
-    parents = None if config.mode == "independent" else _parents(labels)
+    parents = None if config.mode == "independent" else parents_of(labels)
     merged = MergedLevels(labels=labels, parents=parents, seconds=seconds)
     log.info("merged levels: %s regions", " → ".join(f"{c:,}" for c in merged.counts))
     return merged

@@ -1,0 +1,168 @@
+"""Repeated parts: one level-2 region for the alike pieces of an object that do not touch.
+
+A table's four legs, a chair's legs, a teddy bear's two ears are one part each, but they touch
+only through another part (the top, the seat, the head), and no SAM mask shows them together:
+a point on one leg gives that leg. The paper's merging joins touching regions only, so it ends
+with one part per leg. Ours (not in the paper) groups them after the last merging pass, using
+the level-2 features (the ``m`` masks' features, :mod:`thgs.features`):
+
+two level-2 regions a and b of one object (level-3 region) join when
+
+- they do not touch (touching ones had their chance in the merging),
+- they look alike: ``cos(f_a, f_b) ≥ similarity`` (0.8), and
+- they are more alike than either is to some region c of the same object that both touch:
+  ``cos(f_a, f_b) − max(cos(f_a, f_c), cos(f_b, f_c)) ≥ margin`` (0.1).
+
+The last condition is what makes it a repeated part: the legs are alike and unlike the top they
+hang from, while the books of a stack are as alike as the book between them (and stay apart).
+It is relative, so it does not depend on how far apart a feature space puts unrelated crops.
+Joined pairs are grouped transitively (connected components). Levels 0, 1 and 3 do not change,
+so the levels still nest.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from thgs.errors import InputError
+from thgs.hierarchy.adjacency import gaussian_neighbors, unit_graph
+from thgs.hierarchy.merge import MergedLevels, parents_of
+from thgs.scene.gaussians import Gaussians
+
+__all__ = ["RepeatConfig", "group_repeated_parts", "repeated_part_pairs"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class RepeatConfig:
+    """When alike, non-touching parts of one object become one part (ours; not in the paper).
+
+    Attributes:
+        enabled: group them (ours True; the reference False: one part per connected piece).
+        similarity: the least feature cosine of two pieces, in (0, 1] (0.8).
+        margin: how much more alike the two pieces must be than either is to a part both touch,
+            in [0, 2) (0.1).
+        neighbors: k of the 3-D Gaussian KNN (itself included) that defines touching regions
+            (8, as the merging).
+    """
+
+    enabled: bool = True
+    similarity: float = 0.8
+    margin: float = 0.1
+    neighbors: int = 8
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.similarity <= 1.0:
+            raise InputError("RepeatConfig", f"similarity must be in (0, 1], got {self.similarity}")
+        if not 0.0 <= self.margin < 2.0:
+            raise InputError("RepeatConfig", f"margin must be in [0, 2), got {self.margin}")
+        if self.neighbors < 2:
+            raise InputError("RepeatConfig", f"neighbors must be ≥ 2, got {self.neighbors}")
+
+
+def _pairs_within_rows(indptr: np.ndarray, indices: np.ndarray):
+    """All (row, i, j) with i < j two column indices of one CSR row: [T] arrays each."""
+    degree = np.diff(indptr)
+    row_of = np.repeat(np.arange(degree.size), degree)
+    entry = np.arange(indices.size)
+    later = indptr[row_of + 1] - entry - 1  # entries after this one in its row
+    first = np.repeat(entry, later)
+    offset = np.arange(first.size) - np.repeat(np.cumsum(later) - later, later)
+    second = first + 1 + offset
+    return row_of[first], indices[first], indices[second]
+
+
+def repeated_part_pairs(
+    touching: np.ndarray, objects: np.ndarray, features: np.ndarray, config: RepeatConfig
+) -> np.ndarray:
+    """The pairs of parts that :func:`group_repeated_parts` joins.
+
+    Args:
+        touching: [E, 2] int pairs of level-2 regions that touch (either order, any repeats).
+        objects: [R] int level-3 region of every level-2 region.
+        features: [R, D] float level-2 features, unit rows or zero rows (never seen: such a
+            region joins nothing).
+        config: thresholds.
+
+    Returns:
+        [P, 2] int64 pairs (a < b), sorted.
+    """
+    count = len(objects)
+    touching = np.asarray(touching, dtype=np.int64).reshape(-1, 2)
+    a, b = touching[:, 0], touching[:, 1]
+    keep = (a != b) & (objects[a] == objects[b])
+    a, b = a[keep], b[keep]
+    adjacency = coo_matrix(
+        (np.ones(2 * a.size), (np.concatenate([a, b]), np.concatenate([b, a]))),
+        shape=(count, count),
+    ).tocsr()
+    adjacency.sum_duplicates()
+    adjacency.sort_indices()
+    via, first, second = _pairs_within_rows(adjacency.indptr, adjacency.indices)
+    if via.size == 0:
+        return np.zeros((0, 2), dtype=np.int64)
+    features = np.asarray(features, dtype=np.float64)
+    alike = np.einsum("td,td->t", features[first], features[second])
+    to_via = np.maximum(
+        np.einsum("td,td->t", features[first], features[via]),
+        np.einsum("td,td->t", features[second], features[via]),
+    )
+    apart = np.asarray(adjacency[first, second]).ravel() == 0
+    joined = apart & (alike >= config.similarity) & (alike - to_via >= config.margin)
+    pairs = np.unique(np.stack([first[joined], second[joined]], axis=1), axis=0)
+    return pairs.reshape(-1, 2).astype(np.int64)
+
+
+def group_repeated_parts(
+    gaussians: Gaussians,
+    merged: MergedLevels,
+    part_features: np.ndarray,
+    config: RepeatConfig = RepeatConfig(),
+) -> MergedLevels:
+    """The levels with the repeated parts of every object grouped at level 2.
+
+    Args:
+        gaussians: the N Gaussians (their centres define which regions touch).
+        merged: nested levels 0–3 of the N Gaussians (:func:`merge_levels`).
+        part_features: [R_2, D] float features of its level-2 regions (unit or zero rows,
+            :func:`thgs.features.region_features` at level 2).
+        config: thresholds; ``enabled`` False returns ``merged`` unchanged.
+
+    Returns:
+        :class:`MergedLevels`: levels 0, 1, 3 as given; level 2 with joined regions, numbered in
+        order of their smallest level-1 region.
+
+    Raises:
+        InputError: levels that do not nest or are not of these Gaussians, or features not
+            [R_2, D].
+    """
+    labels = merged.labels
+    n = len(gaussians)
+    if merged.parents is None or labels.shape != (n, 4):
+        raise InputError("merged", f"must be nested levels of the {n} Gaussians")
+    parts = labels[:, 2].astype(np.int64)
+    count = merged.counts[2]
+    part_features = np.asarray(part_features)
+    if part_features.ndim != 2 or len(part_features) != count:
+        raise InputError("part_features", f"must be [R_2, D] with R_2 = {count} level-2 regions")
+    if not config.enabled:
+        return merged
+    graph = unit_graph(parts, gaussian_neighbors(gaussians, config.neighbors), count)
+    touching = graph.pairs[graph.hops == 1]
+    pairs = repeated_part_pairs(touching, merged.parents[2], part_features, config)
+    joined = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(count, count))
+    groups, group = connected_components(joined, directed=False)
+    first_unit = np.full(groups, np.iinfo(np.int64).max)
+    np.minimum.at(first_unit, group[parts], labels[:, 1])
+    rank = np.empty(groups, dtype=np.int64)
+    rank[np.argsort(first_unit, kind="stable")] = np.arange(groups)
+    out = labels.copy()
+    out[:, 2] = rank[group[parts]]
+    log.info("repeated parts: %d level-2 regions grouped into %d", count, groups)
+    return MergedLevels(labels=out, parents=parents_of(out), seconds=merged.seconds)

@@ -1,0 +1,158 @@
+"""Repeated parts: the pair rule against brute force, a table's legs and a stack of books."""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+from thgs import Gaussians
+from thgs.errors import InputError
+from thgs.hierarchy import MergedLevels, RepeatConfig, group_repeated_parts, parents_of
+from thgs.hierarchy.repeats import repeated_part_pairs
+
+
+def brute_force_pairs(touching, objects, features, config):
+    """The rule of docs/build.md, one pair and one common neighbour at a time."""
+    count = len(objects)
+    adjacent = {(int(a), int(b)) for a, b in touching} | {(int(b), int(a)) for a, b in touching}
+    cos = features @ features.T
+    pairs = []
+    for a, b in itertools.combinations(range(count), 2):
+        if objects[a] != objects[b] or (a, b) in adjacent or cos[a, b] < config.similarity:
+            continue
+        for c in range(count):
+            if (
+                objects[c] == objects[a]
+                and (a, c) in adjacent
+                and (b, c) in adjacent
+                and cos[a, b] - max(cos[a, c], cos[b, c]) >= config.margin
+            ):
+                pairs.append((a, b))
+                break
+    return np.array(pairs, dtype=np.int64).reshape(-1, 2)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_pairs_match_brute_force(seed):
+    rng = np.random.default_rng(seed)
+    count = 24
+    touching = rng.integers(0, count, (50, 2))
+    objects = rng.integers(0, 3, count)
+    centres = rng.normal(size=(4, 6))
+    features = centres[rng.integers(0, 4, count)] + rng.normal(scale=0.25, size=(count, 6))
+    features /= np.linalg.norm(features, axis=1, keepdims=True)
+    features[rng.random(count) < 0.1] = 0.0  # never seen
+    config = RepeatConfig(similarity=0.7, margin=0.05 * (seed % 3))
+    expected = brute_force_pairs(touching, objects, features, config)
+    found = repeated_part_pairs(touching, objects, features, config)
+    np.testing.assert_array_equal(found, expected)
+    assert seed != 0 or len(expected) > 0  # the case is not empty
+
+
+def gaussians_at(means: np.ndarray) -> Gaussians:
+    n = len(means)
+    return Gaussians(
+        means=torch.as_tensor(means, dtype=torch.float32),
+        quats=torch.tensor([[1.0, 0.0, 0.0, 0.0]]).repeat(n, 1),
+        scales=torch.full((n, 3), -4.0),
+        opacities=torch.zeros(n),
+        sh=torch.zeros(n, 16, 3),
+    )
+
+
+def table() -> tuple[Gaussians, np.ndarray]:
+    """A 1.1 × 1.1 top of 12 × 12 points at z = 1 (unit 0) and four legs of 10 points under
+    its corners (units 1–4): the legs touch the top and not each other."""
+    grid = np.arange(12) * 0.1
+    x, y = np.meshgrid(grid, grid, indexing="ij")
+    top = np.stack([x.ravel(), y.ravel(), np.ones(144)], axis=1)
+    legs = [
+        np.stack([np.full(10, cx), np.full(10, cy), np.arange(10) * 0.1], axis=1)
+        for cx, cy in [(0.0, 0.0), (1.1, 0.0), (0.0, 1.1), (1.1, 1.1)]
+    ]
+    units = np.repeat(np.arange(5), [144, 10, 10, 10, 10])
+    return gaussians_at(np.concatenate([top, *legs])), units
+
+
+def levels_of(units: np.ndarray, objects: np.ndarray) -> MergedLevels:
+    """Levels 0–2 = ``units``; level 3 = ``objects[unit]``."""
+    labels = np.stack([units, units, units, objects[units]], axis=1).astype(np.int32)
+    return MergedLevels(labels=labels, parents=parents_of(labels), seconds={})
+
+
+def unit(*rows) -> np.ndarray:
+    rows = np.asarray(rows, dtype=np.float64)
+    return rows / np.linalg.norm(rows, axis=1, keepdims=True)
+
+
+LEG_FEATURES = unit([0.1, 1, 0], [0, 1, 0.1], [0.05, 1, 0.05], [0, 1, -0.1])
+
+
+def test_a_tables_legs_become_one_part():
+    gaussians, units = table()
+    merged = levels_of(units, np.zeros(5, dtype=np.int64))
+    features = np.concatenate([unit([1, 0, 0]), LEG_FEATURES])
+    grouped = group_repeated_parts(gaussians, merged, features)
+    np.testing.assert_array_equal(grouped.labels[:, 2], np.minimum(units, 1))
+    for k in (0, 1, 3):
+        np.testing.assert_array_equal(grouped.labels[:, k], merged.labels[:, k])
+    assert grouped.counts == (5, 5, 2, 1)
+    for k in (1, 2, 3):
+        parent = grouped.parents[k - 1]
+        np.testing.assert_array_equal(grouped.labels[:, k], parent[grouped.labels[:, k - 1]])
+    # legs as alike as the top they hang from are not a repeated part
+    alike_top = np.concatenate([unit([0, 1, 0]), LEG_FEATURES])
+    same = group_repeated_parts(gaussians, merged, alike_top)
+    np.testing.assert_array_equal(same.labels, merged.labels)
+    # switched off (the reference): nothing changes
+    off = group_repeated_parts(gaussians, merged, features, RepeatConfig(enabled=False))
+    np.testing.assert_array_equal(off.labels, merged.labels)
+
+
+def test_legs_of_another_object_or_never_seen_stay_apart():
+    gaussians, units = table()
+    features = np.concatenate([unit([1, 0, 0]), LEG_FEATURES])
+    # legs 3 and 4 belong to another object: no part of it touches both
+    split = group_repeated_parts(gaussians, levels_of(units, np.array([0, 0, 0, 1, 1])), features)
+    np.testing.assert_array_equal(split.labels[:, 2], np.array([0, 1, 1, 2, 3])[units])
+    # leg 2 was never seen (zero feature): it joins nothing
+    unseen = features.copy()
+    unseen[2] = 0.0
+    merged = levels_of(units, np.zeros(5, dtype=np.int64))
+    grouped = group_repeated_parts(gaussians, merged, unseen)
+    np.testing.assert_array_equal(grouped.labels[:, 2], np.array([0, 1, 2, 1, 1])[units])
+
+
+def test_a_stack_of_alike_books_stays_apart():
+    # three 5 × 5 × 2 blocks stacked along z: book 0 and book 2 both touch book 1 and look alike,
+    # but no more alike than book 1 is to them
+    grid = np.arange(5) * 0.1
+    block = np.stack(np.meshgrid(grid, grid, [0.0, 0.1], indexing="ij"), axis=-1).reshape(-1, 3)
+    means = np.concatenate([block + np.array([0.0, 0.0, 0.2 * i]) for i in range(3)])
+    units = np.repeat(np.arange(3), 50)
+    merged = levels_of(units, np.zeros(3, dtype=np.int64))
+    books = unit([1, 0.1, 0], [1, 0, 0.1], [1, -0.1, 0])
+    grouped = group_repeated_parts(gaussians_at(means), merged, books)
+    np.testing.assert_array_equal(grouped.labels, merged.labels)
+    # the same stack with a differently-looking middle book: the outer books are one part
+    sandwich = unit([1, 0.1, 0], [0, 0, 1], [1, -0.1, 0])
+    grouped = group_repeated_parts(gaussians_at(means), merged, sandwich)
+    np.testing.assert_array_equal(grouped.labels[:, 2], np.array([0, 1, 0])[units])
+
+
+def test_bad_input_is_named():
+    gaussians, units = table()
+    merged = levels_of(units, np.zeros(5, dtype=np.int64))
+    with pytest.raises(InputError, match="part_features"):
+        group_repeated_parts(gaussians, merged, np.zeros((4, 3)))
+    with pytest.raises(InputError, match="merged"):
+        group_repeated_parts(gaussians, replace(merged, parents=None), np.zeros((5, 3)))
+    with pytest.raises(InputError, match="merged"):
+        group_repeated_parts(gaussians_at(np.zeros((3, 3))), merged, np.zeros((5, 3)))
+    for fields in ({"similarity": 0.0}, {"similarity": 1.5}, {"margin": -0.1}, {"neighbors": 1}):
+        with pytest.raises(InputError, match="RepeatConfig"):
+            RepeatConfig(**fields)
