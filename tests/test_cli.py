@@ -109,6 +109,16 @@ def test_build_writes_a_field_of_the_scene(small_dataset, tmp_path, capsys):
     assert config["features"]["mode"] == "centres"
     assert config["merge"]["min_region_gaussians"] == 100
     assert config["superpoints"]["reweight"]["mode"] == "absolute"
+    assert config["features"]["visibility_power"] == 0 and not config["repeats"]["enabled"]
+    assert field.config["repeats"]["enabled"]
+
+    pieces = tmp_path / "pieces.thgs"
+    code, _, err = run(
+        ["build", str(small_dataset), "-o", str(pieces), "--no-repeated-parts"], capsys
+    )
+    assert code == 0, err
+    config = load_field(pieces).config
+    assert not config["repeats"]["enabled"] and config["features"]["visibility_power"] == 2
 
 
 def test_build_names_missing_guidance(small_dataset, tmp_path, capsys):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from pathlib import Path
 from typing import Annotated, Literal
 
@@ -48,6 +49,7 @@ def build(
     resize: bool = False,
     space: str | None = None,
     reference: bool = False,
+    repeated_parts: bool = True,
     verbose: bool = False,
 ) -> None:
     """Build the semantic field of a scene from its views' masks and mask features.
@@ -72,7 +74,11 @@ def build(
             else LangSplat's OpenCLIP ViT-B/16 (laion/CLIP-ViT-B-16-laion2B-s34B-b88K) for 512-D
             features.
         reference: the authors' behaviour where thgs differs (absolute vote offsets, reweighted
-            edge-weight scale, every label voting in merging), to compare.
+            edge-weight scale, every label voting in merging and in the features, one part per
+            connected piece), to compare.
+        repeated_parts: group an object's alike parts that touch only through another part (a
+            table's legs) into one part; --no-repeated-parts keeps one part per piece (the
+            paper's top-3 query selection scores such pieces better: docs/build.md).
         verbose: log every stage with its time.
     """
     from thgs.field import save_field
@@ -103,6 +109,8 @@ def build(
     config = PRESETS[preset]()
     if reference:
         config = config.as_reference()
+    if not repeated_parts:
+        config = replace(config, repeats=replace(config.repeats, enabled=False))
     with stage_progress() as bar:
         field = build_field(loaded, views, config, space=space, progress=StageBars(bar))
     field = record_scene(
