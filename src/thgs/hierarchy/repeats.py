@@ -31,7 +31,7 @@ from scipy.sparse.csgraph import connected_components
 
 from thgs.errors import InputError
 from thgs.hierarchy.adjacency import gaussian_neighbors, unit_graph
-from thgs.hierarchy.merge import MergedLevels, parents_of
+from thgs.hierarchy.merge import MergedLevels, _renumber_by_units, parents_of
 from thgs.scene.gaussians import Gaussians
 
 __all__ = ["RepeatConfig", "group_repeated_parts", "repeated_part_pairs"]
@@ -158,11 +158,7 @@ def group_repeated_parts(
     pairs = repeated_part_pairs(touching, merged.parents[2], part_features, config)
     joined = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(count, count))
     groups, group = connected_components(joined, directed=False)
-    first_unit = np.full(groups, np.iinfo(np.int64).max)
-    np.minimum.at(first_unit, group[parts], labels[:, 1])
-    rank = np.empty(groups, dtype=np.int64)
-    rank[np.argsort(first_unit, kind="stable")] = np.arange(groups)
     out = labels.copy()
-    out[:, 2] = rank[group[parts]]
+    out[:, 2] = _renumber_by_units(group[parts], labels[:, 1])
     log.info("repeated parts: %d level-2 regions grouped into %d", count, groups)
     return MergedLevels(labels=out, parents=parents_of(out), seconds=merged.seconds)
