@@ -2,11 +2,14 @@
 
     .venv/bin/python benchmarks/bench_build.py                          # synth-small, medium
     .venv/bin/python benchmarks/bench_build.py --presets synth-small --seeds 0 1 2 3
+    .venv/bin/python benchmarks/bench_build.py --backends numba torch gsplat   # side by side
 
 Each (preset, seed) runs in its own process. The guidance is the synthetic oracle's at its default
 fault severity (0.5) with all-MiniLM-L6-v2 text features (as in ``thgs demo``: the grouping of
 repeated parts and the region features depend on them). The field is built with the LERF preset
-(ours) and with the authors' behaviour (``FieldConfig.as_reference``) on the same inputs.
+(ours) by every backend in ``--backends`` (default numba) on every device present where it runs
+(``--devices``), and with the authors' behaviour (``FieldConfig.as_reference``) on the same
+inputs.
 Reported: seconds per stage (``SemanticField.timings``), the total, the peak resident memory of
 the whole build (sampled every 5 ms, so it counts what the process already held), region counts
 per level, superpoint purity, the matched-region mIoU of levels 1–3 against the ground-truth
@@ -17,12 +20,19 @@ the names of that level. One JSON line per run, then a markdown table.
 
 from __future__ import annotations
 
+import argparse
+from dataclasses import replace
+
 import numpy as np
 import torch
 from bench_partition import measured, oracle_views, runs_in_subprocesses
+from bench_render import present_devices
 
+from thgs.device import resolve_device
+from thgs.errors import InputError
 from thgs.eval import matched_miou, purity
 from thgs.pipeline import FieldConfig, build_field
+from thgs.render import BACKENDS, RasterConfig, resolve_backend
 from thgs.synthetic import OracleConfig, generate_scene, preset
 from thgs.text import MiniLMEncoder
 
@@ -52,18 +62,42 @@ def feature_accuracy(regions: np.ndarray, truth: np.ndarray, features, names, en
     return float(np.sum(sizes * np.array(right)) / sizes.sum())
 
 
-def run_one(name: str, seed: int) -> dict:
+def _variants(args: argparse.Namespace) -> dict[str, tuple[FieldConfig, torch.device]]:
+    """ "ours" on every asked backend and device present, and the authors' behaviour once."""
+    variants = {}
+    for device_name in args.devices if args.devices else present_devices():
+        device = resolve_device(device_name)
+        for backend in args.backends:
+            raster = RasterConfig(backend=backend)
+            try:
+                resolve_backend(raster, device)
+            except InputError:
+                continue
+            config = FieldConfig.lerf()
+            lift = replace(config.superpoints.lift, raster=raster)
+            config = replace(config, superpoints=replace(config.superpoints, lift=lift))
+            variants[f"ours {backend} {device}"] = (config, device)
+    variants["reference"] = (FieldConfig().as_reference(), torch.device("cpu"))
+    return variants
+
+
+def options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--backends", nargs="*", default=["numba"], help=f"of {BACKENDS}")
+    parser.add_argument("--devices", nargs="*", default=None, help="default: every one present")
+
+
+def run_one(name: str, seed: int, args: argparse.Namespace) -> dict:
     scene = generate_scene(preset(name, seed=seed))
     encoder, oracle = MiniLMEncoder(), OracleConfig(seed=seed)
     views = oracle_views(scene, encoder, oracle)
     truth = scene.hierarchy.labels
     results = {}
-    for variant, config in {
-        "ours": FieldConfig.lerf(),
-        "reference": FieldConfig().as_reference(),
-    }.items():
+    for variant, (config, device) in _variants(args).items():
+        posed = replace(scene, gaussians=scene.gaussians.to(device))
         field, seconds, peak_gib = measured(
-            lambda config=config: build_field(scene, views, config, space=encoder.space)
+            lambda config=config, posed=posed: build_field(
+                posed, views, config, space=encoder.space
+            )
         )
         results[variant] = {
             "seconds": seconds,
@@ -116,7 +150,7 @@ def table(runs: list[dict]) -> str:
                 + " |"
             )
     lines.append("")
-    for variant in ("ours", "reference"):
+    for variant in runs[0]["variants"] if runs else ():
         for key, what in (("miou", "mIoU"), ("feature_accuracy", "feature accuracy")):
             scores = [run["variants"][variant][key] for run in runs]
             if scores:
@@ -126,7 +160,7 @@ def table(runs: list[dict]) -> str:
 
 
 def main() -> None:
-    print(table(runs_in_subprocesses(__doc__, __file__, run_one)))
+    print(table(runs_in_subprocesses(__doc__, __file__, run_one, options)))
 
 
 if __name__ == "__main__":

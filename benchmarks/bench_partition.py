@@ -114,22 +114,34 @@ def run_one(name: str, seed: int) -> dict:
     }
 
 
-def runs_in_subprocesses(doc: str, script: str, run_one: Callable[[str, int], dict]) -> list[dict]:
-    """Parse ``--presets`` and ``--seeds``, run every (preset, seed) in its own process and return
-    the runs, printing each as a JSON line. The child process (``script --one``) prints
-    ``run_one(preset, seed)`` as JSON and exits."""
+def runs_in_subprocesses(
+    doc: str,
+    script: str,
+    run_one: Callable[..., dict],
+    options: Callable[[argparse.ArgumentParser], None] | None = None,
+) -> list[dict]:
+    """Parse ``--presets`` and ``--seeds`` (and what ``options`` adds), run every (preset, seed)
+    in its own process and return the runs, printing each as a JSON line. The child process
+    (``script`` with the same arguments and ``--one``) prints ``run_one(preset, seed)`` (with the
+    parsed arguments as a third argument when ``options`` is given) as JSON and exits."""
     parser = argparse.ArgumentParser(description=doc.splitlines()[0])
     parser.add_argument("--presets", nargs="*", default=["synth-small", "synth-medium"])
     parser.add_argument("--seeds", type=int, nargs="*", default=[0])
     parser.add_argument("--one", action="store_true", help=argparse.SUPPRESS)
+    if options is not None:
+        options(parser)
     args = parser.parse_args()
     if args.one:
-        print(json.dumps(run_one(args.presets[0], args.seeds[0])))
+        extra = (args,) if options is not None else ()
+        print(json.dumps(run_one(args.presets[0], args.seeds[0], *extra)))
         raise SystemExit(0)
     runs = []
     for name in args.presets:
         for seed in args.seeds:
-            command = [sys.executable, script, "--one", "--presets", name, "--seeds", str(seed)]
+            command = [
+                sys.executable, script, *sys.argv[1:], "--one", "--presets", name,
+                "--seeds", str(seed),
+            ]  # fmt: skip
             result = subprocess.run(command, capture_output=True, text=True, check=True)
             print(result.stdout.strip(), flush=True)
             runs.append(json.loads(result.stdout))

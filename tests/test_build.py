@@ -14,9 +14,11 @@ from thgs.errors import InputError
 from thgs.eval import matched_miou
 from thgs.eval.ground_truth import Hierarchy
 from thgs.eval.metrics import best_iou
+from thgs.features import region_features
 from thgs.field import load_field, save_field, scene_fingerprint
 from thgs.hierarchy import MergeConfig
 from thgs.pipeline import FieldConfig, build_field, build_levels, lift_scene
+from thgs.render import RasterConfig
 from thgs.synthetic import OracleConfig, generate_scene, preset
 
 SPACE = "test/hash"
@@ -185,7 +187,25 @@ def test_a_tables_four_legs_become_one_part():
         # the part holding most legs is named "table legs"
         region = np.bincount(parts[synthetic.hierarchy.labels[:, 1] == legs]).argmax()
         assert levels.features[1][region] @ name >= 0.9
+        # kept parts keep their features, joined ones are computed again: as if from scratch
+        features, seen = region_features(parts, 2, lifted.lifted, guidance, config.features)
+        np.testing.assert_array_equal(levels.features[1], features)
+        np.testing.assert_array_equal(levels.seen[1], seen)
     assert scores[True] >= 0.8 and scores[False] <= 0.3
+
+
+def test_the_field_is_the_same_whichever_cpu_backend_lifts(tmp_path):
+    synthetic = generate_scene(preset("synth-small", gaussians=12_000, views=8, seed=3))
+    guidance = oracle_views(synthetic, synthetic.hierarchy, OracleConfig(seed=3))
+    files = []
+    for backend in ("numba", "torch"):
+        config = FieldConfig.lerf()
+        lift = replace(config.superpoints.lift, raster=RasterConfig(backend=backend))
+        config = replace(config, superpoints=replace(config.superpoints, lift=lift))
+        field = build_field(synthetic, guidance, config, space=SPACE)
+        files.append(tmp_path / f"{backend}.thgs")
+        save_field(files[-1], replace(field, timings={}))
+    assert files[0].read_bytes() == files[1].read_bytes()
 
 
 # --- bad input ---------------------------------------------------------------------------------

@@ -14,7 +14,7 @@ from conftest import look_at, random_gaussians
 from test_pipeline import oracle_views, plane_scene
 from test_synthetic import _FakeEncoder
 from thgs import Cameras, InputError
-from thgs.features import FeatureConfig, centre_masks, region_features
+from thgs.features import FeatureConfig, centre_masks, level_features, region_features
 from thgs.guidance import ViewGuidance
 from thgs.lift import LiftConfig, ViewLift, lift_views
 from thgs.render import project
@@ -182,6 +182,30 @@ def test_matches_the_reference_on_random_views(seed, mode, level, authors, known
     np.testing.assert_allclose(features, expected, atol=1e-6)
     assert 0 < seen.sum() <= case.regions - 2 and not seen[-2:].any()
     np.testing.assert_allclose(np.linalg.norm(features[seen], axis=1), 1.0, atol=1e-6)
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_several_levels_in_one_pass_and_within_a_subset(mode, known_centres):
+    """level_features gives each level what region_features gives it alone; restricted to the
+    Gaussians of some regions, those regions' features are unchanged and the others unseen."""
+    case = random_case(5)
+    known_centres(case.centres)
+    config = FeatureConfig(mode=mode, min_visible=0.2)
+    kwargs = {"gaussians": case.gaussians, "cameras": case.cameras}
+    coarse = case.labels // 3
+    columns = np.stack([case.labels, coarse, case.labels], axis=1)
+    together = level_features(columns, (1, 2, 3), case.lifted, case.guidance, config, **kwargs)
+    for (features, seen), level, labels in zip(together, (1, 2, 3), columns.T):
+        alone = region_features(labels, level, case.lifted, case.guidance, config, **kwargs)
+        np.testing.assert_array_equal(features, alone[0])
+        np.testing.assert_array_equal(seen, alone[1])
+    inside = np.isin(case.labels, [0, 4])
+    (features, seen), *_ = level_features(
+        case.labels[:, None], (2,), case.lifted, case.guidance, config, within=inside, **kwargs
+    )
+    full = region_features(case.labels, 2, case.lifted, case.guidance, config, **kwargs)
+    np.testing.assert_array_equal(features[[0, 4]], full[0][[0, 4]])
+    assert not seen[[1, 2, 3, 5, 6]].any() and seen[[0, 4]].all()
 
 
 @pytest.mark.parametrize("mode", MODES)
@@ -511,7 +535,7 @@ def test_bad_input_is_named(known_centres):
     with pytest.raises(InputError, match=r"lifted view 0.*outside \[0, 100\)"):
         call(labels=labels[:100])
     bad = list(lifted)
-    bad[3] = dataclasses.replace(bad[3], labels=bad[3].labels.copy())
+    bad[3] = dataclasses.replace(bad[3], labels=bad[3].labels.clone())
     bad[3].labels[0, 1] = len(guidance[3].features)
     with pytest.raises(InputError, match=r"lifted view 3.*view_3 has \d+ feature rows"):
         call(lifted=bad)

@@ -120,3 +120,17 @@ def test_check_rejects(field, value, message):
     with pytest.raises(InputError, match=message) as info:
         Gaussians(**fields).check(source="my scene")
     assert str(info.value).startswith("my scene: ")
+
+
+def test_a_passed_check_is_remembered_until_a_tensor_changes_in_place():
+    gaussians = random_gaussians(20, seed=3).check()
+    key = gaussians.state_key()
+    assert gaussians.check() is gaussians and gaussians.state_key() == key
+    gaussians.means[4, 1] = float("nan")  # in place: the tensor's version moves on
+    assert gaussians.state_key() != key
+    with pytest.raises(InputError, match="means has NaN or infinite values in 1 Gaussians"):
+        gaussians.check()
+    gaussians.means[4, 1] = 0.0
+    gaussians.quats[2] = 0.0
+    with pytest.raises(InputError, match="zero quaternion"):
+        gaussians.check()

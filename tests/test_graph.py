@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import importlib
+
 import numpy as np
 import pytest
 import torch
@@ -190,6 +192,40 @@ def test_edge_counts_level_and_visibility_threshold():
     pos, neg = edge_counts(HAND_GRAPH, [faint], ReweightConfig(min_max_weight=0.05))
     assert not pos.any()
     np.testing.assert_allclose(neg, [[0, 1], [0, 0], [1 / 3, 0], [0, 0]], rtol=1e-6)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_compiled_edge_counts_equal_the_tensor_path(seed):
+    """The CPU's compiled loop and the gathers every other device runs: the same float32 sums."""
+    module = importlib.import_module("thgs.graph.reweight")  # the package exports reweight()
+
+    rng = np.random.default_rng(seed)
+    n, k = 300, 6
+    neighbors = rng.integers(-1, n, size=(n, k)).astype(np.int32)
+    neighbors[neighbors == np.arange(n)[:, None]] = -1
+    graph = KnnGraph(neighbors, np.where(neighbors >= 0, 1.0, np.inf).astype(np.float32))
+    views = []
+    for _ in range(5):
+        seen = np.sort(rng.choice(n, 200, replace=False))
+        views.append(
+            view(
+                seen,
+                rng.integers(-1, 4, seen.size),
+                rng.uniform(1, 9, seen.size),
+                max_weights=rng.uniform(0, 1, seen.size),
+            )
+        )
+    config = ReweightConfig(min_max_weight=0.2, cap=3.0)
+    pos, neg = edge_counts(graph, views, config)
+    targets = torch.from_numpy(neighbors).long()
+    targets = torch.where(targets >= 0, targets, n)
+    expected = torch.zeros(n, k), torch.zeros(n, k)
+    dense = torch.full((n + 1,), -1, dtype=torch.int32)
+    for lifted in views:
+        module._count_view_torch(targets, lifted, config, dense, *expected)
+    np.testing.assert_array_equal(pos, expected[0].clamp(max=3.0).numpy())
+    np.testing.assert_array_equal(neg, expected[1].clamp(max=3.0).numpy())
+    assert pos.any() and neg.any()
 
 
 def test_edge_counts_reject_views_of_another_scene():

@@ -10,7 +10,16 @@ import torch
 
 from conftest import random_gaussians
 from thgs.errors import InputError
-from thgs.hierarchy import MergeConfig, gaussian_neighbors, merge_levels, pair_affinity, unit_graph
+from thgs.hierarchy import (
+    MergeConfig,
+    coarsened_graph,
+    gaussian_neighbors,
+    mask_evidence,
+    merge_levels,
+    pair_affinity,
+    unit_graph,
+)
+from thgs.hierarchy import affinity as affinity_module
 from thgs.hierarchy.merge import _grow
 from thgs.lift import ViewLift
 
@@ -55,6 +64,20 @@ def test_unit_graph_matches_brute_force():
     assert (one == one.T).all() and not one.diagonal().any()
 
 
+def test_coarsened_graph_equals_the_graph_of_the_regions():
+    rng = np.random.default_rng(3)
+    units = rng.integers(0, 30, 400)
+    units[:30] = np.arange(30)
+    neighbors = rng.integers(0, 400, (400, 5))
+    groups = rng.integers(0, 9, 30)
+    groups[:9] = np.arange(9)
+    coarse = coarsened_graph(unit_graph(units, neighbors), groups, 9)
+    direct = unit_graph(groups[units], neighbors, 9)
+    np.testing.assert_array_equal(coarse.pairs, direct.pairs)
+    np.testing.assert_array_equal(coarse.hops, direct.hops)
+    assert (coarse.one_hop != direct.one_hop).nnz == 0
+
+
 @pytest.mark.parametrize("links", [127, 128, 150, 256, 300])
 def test_units_joined_by_many_gaussian_pairs_touch(links):
     # regression: counting the Gaussian pairs between two units in int8 wrapped at 128, and
@@ -66,6 +89,18 @@ def test_units_joined_by_many_gaussian_pairs_touch(links):
     graph = unit_graph(units, neighbors)
     assert graph.pairs.tolist() == [[0, 1], [0, 2], [1, 2]]
     assert graph.hops.tolist() == [1, 2, 1]
+
+
+def _tensor(array) -> torch.Tensor:
+    return torch.as_tensor(np.asarray(array))
+
+
+def _tensors(sources):
+    return [tuple(_tensor(part) for part in source) for source in sources]
+
+
+def _affinity(units, count, pairs, sources) -> np.ndarray:
+    return pair_affinity(mask_evidence(_tensor(units), count, _tensors(sources)), pairs)
 
 
 def _brute_affinity(units, count, a, b, sources):
@@ -104,9 +139,28 @@ def test_pair_affinity_matches_brute_force(seed, weighted):
         sources.append((seen, labels, weights) if weighted else (seen, labels))
     sources.append((np.zeros(0, np.int64), np.zeros(0, np.int64)))  # a view without labels
     pairs = np.array([(a, b) for a in range(10) for b in range(a + 1, 10)])
-    got = pair_affinity(units, 10, pairs, sources)
+    got = _affinity(units, 10, pairs, sources)
     expected = [_brute_affinity(units, 10, a, b, sources) for a, b in pairs]
     np.testing.assert_allclose(got, expected, atol=1e-12)
+    # pooled into regions, the evidence gives the regions' affinities
+    groups = np.array([0, 0, 1, 2, 2, 2, 3, 1, 4, 4])
+    pooled = mask_evidence(_tensor(units), 10, _tensors(sources)).pooled(_tensor(groups), 5)
+    region_pairs = np.array([(a, b) for a in range(5) for b in range(a + 1, 5)])
+    expected = [_brute_affinity(groups[units], 5, a, b, sources) for a, b in region_pairs]
+    np.testing.assert_allclose(pair_affinity(pooled, region_pairs), expected, atol=1e-12)
+
+
+def test_pair_affinity_in_small_chunks_and_sorted_histograms(monkeypatch):
+    """The join in chunks of one entry and histograms summed by sorting give the same values."""
+    rng = np.random.default_rng(4)
+    units = rng.integers(0, 8, 100)
+    units[:8] = np.arange(8)
+    sources = [(np.arange(100), rng.integers(-1, 4, 100), rng.uniform(0, 1, 100))] * 3
+    pairs = np.array([(a, b) for a in range(8) for b in range(a + 1, 8)])
+    expected = _affinity(units, 8, pairs, sources)
+    monkeypatch.setattr(affinity_module, "_JOIN_CHUNK", 1)
+    monkeypatch.setattr(affinity_module, "_DENSE_MAX", 0)
+    np.testing.assert_allclose(_affinity(units, 8, pairs, sources), expected, atol=1e-14)
 
 
 def test_affinity_hand_case():
@@ -115,13 +169,13 @@ def test_affinity_hand_case():
     units = np.array([0, 0, 1, 1])
     view_a = (np.arange(4), np.array([7, 7, 7, 7]))
     view_b = (np.array([0, 2]), np.array([7, 8]))
-    got = pair_affinity(units, 2, np.array([[0, 1]]), [view_a, view_b])
+    got = _affinity(units, 2, np.array([[0, 1]]), [view_a, view_b])
     np.testing.assert_allclose(got, [1 / 1.25])
     # weighted labels: in view B Gaussian 0 now weighs 0.2 and 2 weighs 0.1 (faint): shares
     # 0.1 and 0.05, so B counts 0.005 against A's 1: A = 1 / 1.005
     view_b = (np.array([0, 2]), np.array([7, 8]), np.array([0.2, 0.1]))
     view_a = (*view_a, np.ones(4))
-    got = pair_affinity(units, 2, np.array([[0, 1]]), [view_a, view_b])
+    got = _affinity(units, 2, np.array([[0, 1]]), [view_a, view_b])
     np.testing.assert_allclose(got, [1 / 1.005])
 
 

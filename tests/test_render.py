@@ -1,5 +1,6 @@
-"""Rasterization and splat-back: the CPU backend against a brute-force reference, analytic cases,
-the adjoint identity, gsplat's pure-torch projection, and bad input."""
+"""Rasterization and splat-back through the public API, for every CPU backend: against the
+brute-force reference (thgs.render._reference), analytic cases, the adjoint identity, gsplat's
+pure-torch projection, backend selection and bad input."""
 
 from __future__ import annotations
 
@@ -9,10 +10,13 @@ import numpy as np
 import pytest
 import torch
 
-from render_reference import brute_force
 from thgs import Cameras, Gaussians, InputError
-from thgs.render import RasterConfig, project, render, splat_back, splat_labels
+from thgs.render import RasterConfig, project, render, resolve_backend, splat_back, splat_labels
+from thgs.render._reference import ReferenceBackend, dense_weights
+from thgs.render.projection import project_torch
 from thgs.scene.gaussians import quaternions_to_matrices
+
+CPU_BACKENDS = ["numba", "torch"]
 
 
 def camera(width=48, height=36, focal=40.0, cx=None, cy=None) -> Cameras:
@@ -50,13 +54,14 @@ def tiny_scene(kind: str, n: int = 40, seed: int = 0) -> Gaussians:
     return Gaussians(means, quats, scales, opacities, sh).check()
 
 
+@pytest.mark.parametrize("backend", CPU_BACKENDS)
 @pytest.mark.parametrize("kind", ["2dgs", "3dgs"])
 @pytest.mark.parametrize("seed", [0, 1, 2])
 @pytest.mark.parametrize("principal", [None, (20.3, 21.7)])
-def test_cpu_matches_brute_force(kind, seed, principal):
+def test_backend_matches_brute_force(backend, kind, seed, principal):
     gaussians = tiny_scene(kind, seed=seed)
     cam = camera() if principal is None else camera(cx=principal[0], cy=principal[1])
-    config = RasterConfig(tile_size=8)
+    config = RasterConfig(tile_size=8, backend=backend)
     features = torch.randn(
         len(gaussians), 5, dtype=torch.float64, generator=torch.Generator().manual_seed(seed)
     )
@@ -64,29 +69,107 @@ def test_cpu_matches_brute_force(kind, seed, principal):
         36, 48, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(7)
     )
     mask = torch.rand(36, 48, generator=torch.Generator().manual_seed(8)) > 0.3
-    expected = brute_force(gaussians, cam, config, features, pixel_map, mask)
-    assert float(expected["alpha"].max()) > 0.5, "the scene must actually cover pixels"
-    assert int((expected["pixel_counts"] > 0).sum()) > 10
+    reference = ReferenceBackend()
+    expected = reference.render(gaussians, cam, features, config)
+    expected_back = reference.splat_back(gaussians, cam, pixel_map, mask, config)
+    assert float(expected.alpha.max()) > 0.5, "the scene must actually cover pixels"
+    assert int((expected_back.pixel_counts > 0).sum()) > 10
 
     out = render(gaussians, cam, features, config=config)
-    torch.testing.assert_close(out.image, expected["image"], atol=1e-12, rtol=1e-10)
-    torch.testing.assert_close(out.alpha, expected["alpha"], atol=1e-12, rtol=1e-10)
-    torch.testing.assert_close(out.depth, expected["depth"], atol=1e-10, rtol=1e-10)
-    assert torch.equal(out.max_id, expected["max_id"])
+    torch.testing.assert_close(out.image, expected.image, atol=1e-12, rtol=1e-10)
+    torch.testing.assert_close(out.alpha, expected.alpha, atol=1e-12, rtol=1e-10)
+    torch.testing.assert_close(out.depth, expected.depth, atol=1e-10, rtol=1e-10)
+    assert torch.equal(out.max_id, expected.max_id)
 
     back = splat_back(gaussians, cam, pixel_map, mask=mask, config=config)
     for name in ("feature_sums", "weight_sums", "max_weights"):
-        torch.testing.assert_close(getattr(back, name), expected[name], atol=1e-12, rtol=1e-10)
-    assert torch.equal(back.pixel_counts, expected["pixel_counts"])
+        torch.testing.assert_close(
+            getattr(back, name), getattr(expected_back, name), atol=1e-12, rtol=1e-10
+        )
+    assert torch.equal(back.pixel_counts, expected_back.pixel_counts)
     torch.testing.assert_close(back.depths, gaussians.means[:, 2].double())
 
 
+@pytest.mark.parametrize("kind", ["2dgs", "3dgs"])
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_numba_projection_matches_torch(kind, seed):
+    """The numba backend's compiled projection against the torch projection (which is tested
+    against gsplat's): the same validity and pixel boxes, the same parameters to rounding."""
+    gaussians = tiny_scene(kind, n=200, seed=seed)
+    cam = camera(cx=20.3, cy=21.7)
+    config = RasterConfig(backend="numba")
+    ours, expected = project(gaussians, cam, config), project_torch(gaussians, cam, config)
+    assert torch.equal(ours.valid, expected.valid)
+    assert torch.equal(ours.bounds, expected.bounds)
+    valid = expected.valid
+    torch.testing.assert_close(ours.depths, expected.depths, atol=1e-12, rtol=1e-12)
+    torch.testing.assert_close(ours.opacities, expected.opacities, atol=1e-14, rtol=1e-12)
+    torch.testing.assert_close(ours.centers[valid], expected.centers[valid], rtol=1e-12, atol=1e-9)
+    torch.testing.assert_close(
+        ours.alpha_centers[valid], expected.alpha_centers[valid], rtol=1e-10, atol=1e-9
+    )
+    torch.testing.assert_close(ours.params[valid], expected.params[valid], rtol=1e-9, atol=1e-12)
+
+
+def test_backends_agree_on_a_larger_scene():
+    """numba and torch on 1,500 Gaussians at 96×72: both float64, equal to rounding."""
+    gaussians = tiny_scene("2dgs", n=1500, seed=4)
+    cam = camera(96, 72, focal=80.0)
+    features = gaussians.dc_colors().double()
+    maps = np.random.default_rng(4).integers(-1, 5, size=(2, 12, 16)).repeat(6, 1).repeat(6, 2)
+    out = {}
+    for backend in CPU_BACKENDS:
+        config = RasterConfig(backend=backend)
+        out[backend] = (
+            render(gaussians, cam, features, config=config),
+            splat_labels(gaussians, cam, maps, config=config),
+        )
+    (render_a, labels_a), (render_b, labels_b) = out["numba"], out["torch"]
+    torch.testing.assert_close(render_a.image, render_b.image, atol=1e-12, rtol=1e-10)
+    assert torch.equal(render_a.max_id, render_b.max_id)
+    for name in ("gaussians", "levels", "labels"):
+        assert torch.equal(getattr(labels_a, name), getattr(labels_b, name))
+    torch.testing.assert_close(labels_a.weights, labels_b.weights, atol=1e-12, rtol=1e-10)
+
+
+def test_numba_reuses_prepared_gaussians_until_they_change():
+    """The numba backend keeps the Gaussians' activated values between views; modifying a tensor
+    in place invalidates them."""
+    gaussians, cam = tiny_scene("3dgs", seed=2), camera()
+    features = torch.ones(len(gaussians), 1, dtype=torch.float64)
+    before = render(gaussians, cam, features)
+    gaussians.opacities.sub_(2.0)
+    gaussians.quats[:, 1:] *= -1
+    after = render(gaussians, cam, features)
+    expected = ReferenceBackend().render(gaussians, cam, features, RasterConfig())
+    torch.testing.assert_close(after.image, expected.image, atol=1e-12, rtol=1e-10)
+    assert not torch.allclose(after.image, before.image)
+
+
+def test_backend_resolution():
+    cpu = torch.device("cpu")
+    backend, dtype = resolve_backend(RasterConfig(), cpu)
+    assert (backend.name, dtype) == ("numba", torch.float64)
+    backend, dtype = resolve_backend(RasterConfig(backend="torch", precision="float32"), cpu)
+    assert (backend.name, dtype) == ("torch", torch.float32)
+    with pytest.raises(InputError, match="numba cannot render on cpu: it computes in float64"):
+        resolve_backend(RasterConfig(backend="numba", precision="float32"), cpu)
+    with pytest.raises(InputError, match="numba cannot render on meta: it runs on the CPU only"):
+        resolve_backend(RasterConfig(backend="numba"), torch.device("meta"))
+    with pytest.raises(InputError, match="MPS has no float64"):
+        resolve_backend(RasterConfig(precision="float64"), torch.device("mps"))
+    with pytest.raises(InputError, match="backend must be auto, numba, torch or gsplat"):
+        RasterConfig(backend="cuda")  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("backend", CPU_BACKENDS)
 @pytest.mark.parametrize("tile_size", [1, 5, 16, 64])
-def test_tile_size_does_not_change_results(tile_size):
+def test_tile_size_does_not_change_results(backend, tile_size):
     gaussians = tiny_scene("2dgs", seed=3)
     features = gaussians.dc_colors()
     reference = render(gaussians, camera(), features, config=RasterConfig(tile_size=16))
-    out = render(gaussians, camera(), features, config=RasterConfig(tile_size=tile_size))
+    config = RasterConfig(tile_size=tile_size, backend=backend)
+    out = render(gaussians, camera(), features, config=config)
     torch.testing.assert_close(out.image, reference.image, atol=1e-6, rtol=0)
     assert torch.equal(out.max_id, reference.max_id)
 
@@ -216,7 +299,7 @@ def test_projection_matches_gsplat_3dgs():
     gaussians = tiny_scene("3dgs", n=80, seed=9)
     cam = camera(cx=20.0, cy=15.5)
     config = RasterConfig(near=0.2)
-    ours = project(gaussians, cam, config)
+    ours = project_torch(gaussians, cam, config)
     rotations = quaternions_to_matrices(gaussians.quats.double())
     scaled = rotations * torch.exp(gaussians.scales.double())[:, None]
     _, means2d, depths, conics, _ = torch_impl._fully_fused_projection(
@@ -239,7 +322,7 @@ def test_projection_matches_gsplat_2dgs():
     torch_impl = pytest.importorskip("gsplat.cuda._torch_impl_2dgs")
     gaussians = tiny_scene("2dgs", n=80, seed=10)
     cam = camera(cx=20.0, cy=15.5)
-    ours = project(gaussians, cam, RasterConfig(near=0.2))
+    ours = project_torch(gaussians, cam, RasterConfig(near=0.2))
     scales3 = torch.cat([torch.exp(gaussians.scales.double()), torch.ones(80, 1).double()], 1)
     _, means2d, depths, ray_transforms, _ = torch_impl._fully_fused_projection_2dgs(
         gaussians.means.double(),
@@ -299,17 +382,18 @@ def test_bad_input():
         RasterConfig(near=-1.0)
 
 
+@pytest.mark.parametrize("backend", CPU_BACKENDS)
 @pytest.mark.parametrize("kind", ["2dgs", "3dgs"])
 @pytest.mark.parametrize("seed", [0, 1])
-def test_splat_labels_matches_brute_force(kind, seed):
+def test_splat_labels_matches_brute_force(backend, kind, seed):
     gaussians, cam = tiny_scene(kind, seed=seed), camera()
     rng = np.random.default_rng(seed)
     # two levels of blocky labels with unlabelled pixels
     coarse = rng.integers(-1, 3, size=(6, 8)).repeat(6, axis=0).repeat(6, axis=1)
     fine = rng.integers(-1, 7, size=(12, 16)).repeat(3, axis=0).repeat(3, axis=1)
     maps = np.stack([coarse, fine])
-    result = splat_labels(gaussians, cam, maps)
-    weights = brute_force(gaussians, cam, RasterConfig())["weights"].numpy()  # [H, W, N]
+    result = splat_labels(gaussians, cam, maps, config=RasterConfig(backend=backend))
+    weights = dense_weights(gaussians, cam)[0].numpy()  # [H, W, N], composited by hand
     expected = {}
     for level in range(2):
         for label in range(int(maps[level].max()) + 1):
@@ -317,7 +401,7 @@ def test_splat_labels_matches_brute_force(kind, seed):
             for g in np.flatnonzero(sums > 0):
                 expected[(int(g), level, label)] = sums[g]
     got = {
-        (int(g), int(level), int(label)): w
+        (int(g), int(level), int(label)): float(w)
         for g, level, label, w in zip(
             result.gaussians, result.levels, result.labels, result.weights
         )
@@ -327,5 +411,20 @@ def test_splat_labels_matches_brute_force(kind, seed):
         assert got[key] == pytest.approx(value, rel=1e-9, abs=1e-12)
     np.testing.assert_allclose(result.weight_sums, weights.sum((0, 1)), rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(result.max_weights, weights.max((0, 1)), rtol=1e-9, atol=1e-12)
-    keys = np.stack([result.gaussians, result.levels, result.labels], axis=1)
-    assert (np.diff(keys[:, 0] * 100 + keys[:, 1] * 10 + keys[:, 2]) > 0).all()  # sorted
+    keys = torch.stack([result.gaussians, result.levels, result.labels], dim=1)
+    assert bool((torch.diff(keys[:, 0] * 100 + keys[:, 1] * 10 + keys[:, 2]) > 0).all())
+
+
+def test_splat_labels_many_labels_in_a_tile(monkeypatch):
+    """A tile with more (Gaussian, level, label) cells than the numba backend's per-tile table
+    holds adds every pixel's weight directly: the same sums."""
+    from thgs.render import _numba
+
+    gaussians, cam = tiny_scene("2dgs", n=60, seed=6), camera()
+    maps = np.arange(2 * 36 * 48).reshape(2, 36, 48) % 997  # a new label on almost every pixel
+    expected = splat_labels(gaussians, cam, maps)
+    monkeypatch.setattr(_numba, "_LOCAL_SLOTS_MAX", 0)
+    direct = splat_labels(gaussians, cam, maps)
+    for name in ("gaussians", "levels", "labels"):
+        assert torch.equal(getattr(direct, name), getattr(expected, name))
+    torch.testing.assert_close(direct.weights, expected.weights, atol=1e-14, rtol=1e-12)

@@ -36,6 +36,7 @@ import torch
 
 from thgs._atomic import atomic_output
 from thgs.demo import default_cache, open_synthetic_dataset, synthetic_dataset
+from thgs.device import resolve_device
 from thgs.errors import InputError, ThgsError
 from thgs.eval.dataset import evaluate_dataset, find_ground_truth
 from thgs.eval.segmenter import Regions, Segmenter
@@ -164,6 +165,7 @@ class BenchConfig:
         variants: names from :data:`VARIANTS`.
         gaussians, views: override the presets' sizes (quick runs).
         cache: where the synthetic datasets are kept (default :func:`thgs.demo.default_cache`).
+        device: where the scenes are built and scored (:func:`thgs.device.resolve_device`).
     """
 
     presets: tuple[str, ...] = field(default_factory=default_presets)
@@ -172,6 +174,7 @@ class BenchConfig:
     gaussians: int | None = None
     views: int | None = None
     cache: Path | None = None
+    device: str = "auto"
 
     def check(self) -> BenchConfig:
         for name in self.presets:
@@ -268,6 +271,7 @@ def _bench_scene(
         cache, preset, seed, config.gaussians, config.views, encoder, progress
     )
     scene, guidance = open_synthetic_dataset(folder, encoder)
+    scene = scene.to(resolve_device(config.device))
     ground_truth = find_ground_truth(folder)
     base = FieldConfig.lerf()
     configs = {name: VARIANTS[name](base) for name in config.variants}

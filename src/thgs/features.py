@@ -20,8 +20,10 @@ column). Two training-free, one-pass modes, both the reference's:
   portion`` with ``portion`` that share.
 
 Finally every ``f_r`` is L2-normalized; regions no view contributed to keep a zero row. The work
-is vectorized per view (bincounts and one sparse product), so memory per view is O(n_seen +
-masks·D + R·D) and time is linear in the number of seen Gaussians.
+runs on the lifted views' device, vectorized per view (indexed sums into a dense [R, masks of the
+level] table and one product with the masks' features), so memory per view is O(n_seen + R·masks
++ masks·D + R·D) and time is linear in the number of seen Gaussians. Only the [R, D] result comes
+back to the CPU.
 """
 
 from __future__ import annotations
@@ -33,14 +35,15 @@ from dataclasses import dataclass, replace
 from typing import Literal
 
 import numpy as np
-import scipy.sparse
+import torch
+from torch import Tensor
 
 from thgs.errors import InputError
 from thgs.guidance import LEVELS, ViewGuidance
 from thgs.lift import ViewLift
 from thgs.scene import Cameras, Gaussians
 
-__all__ = ["FeatureConfig", "centre_masks", "region_features"]
+__all__ = ["FeatureConfig", "centre_masks", "level_features", "region_features"]
 
 logger = logging.getLogger(__name__)
 
@@ -112,14 +115,34 @@ class FeatureConfig:
         return replace(self, min_max_weight=0.0, visibility_power=0.0)
 
 
+def _centre_pixels(means: Tensor, camera: Cameras, indices: Tensor, height: int, width: int):
+    """``(rows, columns, inside)``: the pixel under each selected centre and whether it lies in
+    front of the camera and inside the image (rows and columns are 0 where it does not)."""
+    device = means.device
+    viewmat = camera.viewmats[0].to(device=device, dtype=torch.float64)
+    K = camera.Ks[0].to(device=device, dtype=torch.float64)
+    points = means[indices].double() @ viewmat[:3, :3].T + viewmat[:3, 3]
+    image = points @ K.T
+    front = points[:, 2] > 0
+    z = torch.where(front, image[:, 2], 1.0)
+    x, y = image[:, 0] / z, image[:, 1] / z
+    inside = front & (x >= 0) & (x < width) & (y >= 0) & (y < height)
+    rows = torch.where(inside, torch.floor(y), 0.0).long()
+    columns = torch.where(inside, torch.floor(x), 0.0).long()
+    return rows, columns, inside
+
+
 def centre_masks(
-    means: np.ndarray, camera: Cameras, segments: np.ndarray, indices: np.ndarray
-) -> np.ndarray:
+    means: Tensor | np.ndarray,
+    camera: Cameras,
+    segments: Tensor | np.ndarray,
+    indices: Tensor | np.ndarray,
+) -> Tensor:
     """The mask under the projected centre of some Gaussians in one view.
 
     A centre at camera-frame position ``c = R·μ + t`` lands on the continuous pixel coordinates
-    ``(K·c)[:2] / c_z`` (the formula of :meth:`thgs.scene.Cameras.project`, in NumPy and for the
-    selected Gaussians only); pixel (u, v) covers ``[u, u+1) × [v, v+1)``, so the mask of a
+    ``(K·c)[:2] / c_z`` (the formula of :meth:`thgs.scene.Cameras.project`, in float64 and for
+    the selected Gaussians only); pixel (u, v) covers ``[u, u+1) × [v, v+1)``, so the mask of a
     centre at (x, y) is ``segments[⌊y⌋, ⌊x⌋]``.
 
     Args:
@@ -129,23 +152,15 @@ def centre_masks(
         indices: [m] integer indices into ``means`` of the Gaussians to look up.
 
     Returns:
-        [m] int64 mask id per Gaussian; −1 where the centre lies behind the camera (z ≤ 0),
-        outside the image, or on a pixel without a mask.
+        [m] int64 mask id per Gaussian, on the device of ``means``; −1 where the centre lies
+        behind the camera (z ≤ 0), outside the image, or on a pixel without a mask.
     """
-    viewmat = camera.viewmats[0].detach().cpu().numpy().astype(np.float64)
-    K = camera.Ks[0].detach().cpu().numpy().astype(np.float64)
-    points = means[indices].astype(np.float64) @ viewmat[:3, :3].T + viewmat[:3, 3]
-    image = points @ K.T
-    front = points[:, 2] > 0
-    z = np.where(front, image[:, 2], 1.0)
-    x, y = image[:, 0] / z, image[:, 1] / z
+    means = torch.as_tensor(means)
+    segments = torch.as_tensor(segments, device=means.device)
+    indices = torch.as_tensor(indices, device=means.device).long()
     height, width = segments.shape
-    inside = front & (x >= 0) & (x < width) & (y >= 0) & (y < height)
-    out = np.full(len(indices), -1, dtype=np.int64)
-    rows = np.floor(y[inside]).astype(np.int64)
-    columns = np.floor(x[inside]).astype(np.int64)
-    out[inside] = segments[rows, columns]
-    return out
+    rows, columns, inside = _centre_pixels(means, camera, indices, height, width)
+    return torch.where(inside, segments[rows, columns].long(), -1)
 
 
 def _check_labels(labels: np.ndarray, regions: int | None) -> tuple[np.ndarray, int]:
@@ -181,9 +196,9 @@ def _check_views(
     dims = set()
     for i, (view, masks) in enumerate(zip(lifted, guidance)):
         view.check(count, source=f"lifted view {i}")
-        if not np.issubdtype(view.labels.dtype, np.integer):
+        if view.device != lifted[0].device:
             raise InputError(
-                f"lifted view {i}", f"labels must be integers, not {view.labels.dtype}"
+                f"lifted view {i}", f"is on {view.device}, view 0 on {lifted[0].device}"
             )
         if masks.features.ndim != 2 or masks.segments.ndim != 3 or masks.segments.shape[0] != 4:
             raise InputError(
@@ -191,12 +206,14 @@ def _check_views(
             )
         dims.add(int(masks.features.shape[1]))
         column = view.labels[:, level]
-        if len(column) and (int(column.min()) < -1 or int(column.max()) >= len(masks.features)):
-            raise InputError(
-                f"lifted view {i}",
-                f"level-{LEVELS[level]} mask ids range over [{column.min()}, {column.max()}] but "
-                f"guidance {masks.stem} has {len(masks.features)} feature rows",
-            )
+        if len(column):
+            low, high = int(column.min()), int(column.max())
+            if low < -1 or high >= len(masks.features):
+                raise InputError(
+                    f"lifted view {i}",
+                    f"level-{LEVELS[level]} mask ids range over [{low}, {high}] but "
+                    f"guidance {masks.stem} has {len(masks.features)} feature rows",
+                )
     if len(dims) != 1:
         raise InputError("guidance", f"views disagree on the feature dimension: {sorted(dims)}")
     return dims.pop()
@@ -235,96 +252,195 @@ def _check_geometry(
                 f"level-{LEVELS[level]} mask ids range over [{segments.min()}, {segments.max()}] "
                 f"but there are {len(view.features)} feature rows",
             )
-    return gaussians.means.detach().cpu().numpy().astype(np.float64), cameras
+    return gaussians.means.detach(), cameras
 
 
-def _pooled(
-    regions: np.ndarray, masks: np.ndarray, weights: np.ndarray, shape: tuple[int, int]
-) -> scipy.sparse.csr_matrix:
-    """[R, M] sparse sum of ``weights`` per (region, mask) pair."""
-    return scipy.sparse.csr_matrix((weights, (regions, masks)), shape=shape)
+def _accumulate(out: Tensor, pooled: Tensor, features: Tensor, scale: Tensor) -> None:
+    """``out[r] += normalize(pooled[r] @ features) · scale[r]`` for rows with a non-zero sum.
 
-
-def _accumulate(
-    out: np.ndarray, pooled: scipy.sparse.csr_matrix, features: np.ndarray, scale: np.ndarray
-) -> None:
-    """``out[r] += normalize(pooled[r] @ features) · scale[r]`` for rows with a non-zero sum."""
-    rows = np.flatnonzero(np.diff(pooled.indptr) > 0)
-    rows = rows[scale[rows] > 0]
+    ``pooled`` is [R, M] (region × the masks ``features`` [M, D] describe)."""
+    rows = torch.nonzero((pooled != 0).any(dim=1) & (scale > 0))[:, 0]
     if len(rows) == 0:
         return
-    sums = np.asarray(pooled[rows] @ features)
-    norms = np.linalg.norm(sums, axis=1)
+    sums = pooled[rows] @ features
+    norms = torch.linalg.vector_norm(sums, dim=1)
     nonzero = norms > 0
     rows, sums, norms = rows[nonzero], sums[nonzero], norms[nonzero]
     out[rows] += sums * (scale[rows] / norms)[:, None]
 
 
+def _pooled(
+    regions: Tensor, masks: Tensor, weights: Tensor, take: Tensor, count: int
+) -> tuple[Tensor, int] | None:
+    """[R, M] sums of ``weights`` per (region, mask) over the entries where ``take`` is True, M
+    spanning the masks that occur there from the smallest (returned); None when none is taken."""
+    if not bool(take.any()):
+        return None
+    chosen = masks[take]
+    low, high = int(chosen.min()), int(chosen.max())
+    width = high - low + 1
+    keys = regions * width + (masks - low).clamp(0, width - 1)
+    table = torch.zeros(count * width, dtype=weights.dtype, device=weights.device)
+    table.index_add_(0, keys, torch.where(take, weights, 0.0))
+    return table.reshape(count, width), low
+
+
+def _fraction(values: Tensor, sizes: Tensor) -> Tensor:
+    return torch.where(sizes > 0, values / torch.where(sizes > 0, sizes, 1.0), 0.0)
+
+
+@dataclass(frozen=True, eq=False)
+class _Level:
+    """One hierarchy level's accumulation: its regions and running feature sums."""
+
+    level: int
+    region_of: Tensor
+    sizes: Tensor
+    out: Tensor
+
+
 def _shares_view(
-    out: np.ndarray,
-    labels: np.ndarray,
-    sizes: np.ndarray,
-    view: ViewLift,
-    features: np.ndarray,
-    level: int,
+    levels: list[_Level],
+    gaussians: Tensor,
+    max_weights: Tensor,
+    labels: Tensor,
+    features: Tensor,
     config: FeatureConfig,
 ) -> None:
-    count = len(sizes)
-    regions = labels[view.gaussians]
-    counted = view.max_weights >= config.min_max_weight
-    weights = view.max_weights.astype(np.float64) ** config.visibility_power
-    visible = counted & (view.max_weights > config.visible_weight)
-    share_visible = np.divide(
-        np.bincount(regions[visible], weights=weights[visible], minlength=count),
-        sizes,
-        out=np.zeros(count),
-        where=sizes > 0,
-    )
-    masks = view.labels[:, level].astype(np.int64)
-    labelled = counted & (masks >= 0)
-    if not labelled.any():
-        return
-    shares = _pooled(regions[labelled], masks[labelled], weights[labelled], (count, len(features)))
-    labelled_per_region = np.asarray(shares.sum(axis=1)).ravel()
-    shares.data = shares.data / np.repeat(labelled_per_region, np.diff(shares.indptr))
-    shares.data[shares.data < config.min_share] = 0.0
-    shares.eliminate_zeros()
-    _accumulate(out, shares, features, share_visible)
+    counted = max_weights >= config.min_max_weight
+    weights = max_weights.double() ** config.visibility_power
+    visible_weights = torch.where(counted & (max_weights > config.visible_weight), weights, 0.0)
+    for level in levels:
+        count = len(level.sizes)
+        regions = level.region_of[gaussians]
+        seen = torch.zeros(count, dtype=torch.float64, device=weights.device)
+        seen.index_add_(0, regions, visible_weights)
+        masks = labels[:, level.level].long()
+        pooled = _pooled(regions, masks, weights, counted & (masks >= 0), count)
+        if pooled is None:
+            continue
+        shares, low = pooled
+        shares = _fraction(shares, shares.sum(dim=1, keepdim=True))
+        shares = torch.where(shares < config.min_share, 0.0, shares)
+        masks_features = features[low : low + shares.shape[1]]
+        _accumulate(level.out, shares, masks_features, _fraction(seen, level.sizes))
 
 
 def _centres_view(
-    out: np.ndarray,
-    labels: np.ndarray,
-    sizes: np.ndarray,
-    view: ViewLift,
-    features: np.ndarray,
-    means: np.ndarray,
+    levels: list[_Level],
+    gaussians: Tensor,
+    max_weights: Tensor,
+    features: Tensor,
+    means: Tensor,
     camera: Cameras,
-    segments: np.ndarray,
+    segments: Tensor,
     config: FeatureConfig,
 ) -> None:
-    count = len(sizes)
-    used = view.max_weights > config.centre_weight
-    gaussians = view.gaussians[used].astype(np.int64)
-    weights = view.max_weights[used].astype(np.float64)
-    regions = labels[gaussians]
-    portion = np.divide(
-        np.bincount(regions, minlength=count).astype(np.float64),
-        sizes,
-        out=np.zeros(count),
-        where=sizes > 0,
-    )
-    eligible = (portion >= config.min_visible) & (portion > 0)
-    keep = eligible[regions]
-    gaussians, weights, regions = gaussians[keep], weights[keep], regions[keep]
-    if len(gaussians) == 0:
-        return
-    masks = centre_masks(means, camera, segments, gaussians)
-    hit = masks >= 0
-    if not hit.any():
-        return
-    pooled = _pooled(regions[hit], masks[hit], weights[hit], (count, len(features)))
-    _accumulate(out, pooled, features, portion)
+    used = max_weights > config.centre_weight
+    gaussians = gaussians[used]
+    weights = max_weights[used].double()
+    for level in levels:
+        count = len(level.sizes)
+        regions = level.region_of[gaussians]
+        portion = _fraction(torch.bincount(regions, minlength=count).double(), level.sizes)
+        eligible = ((portion >= config.min_visible) & (portion > 0))[regions]
+        masks = torch.as_tensor(
+            centre_masks(means, camera, segments[level.level], gaussians), device=weights.device
+        )
+        pooled = _pooled(regions, masks, weights, eligible & (masks >= 0), count)
+        if pooled is None:
+            continue
+        table, low = pooled
+        _accumulate(level.out, table, features[low : low + table.shape[1]], portion)
+
+
+def level_features(
+    labels: np.ndarray,
+    levels: Sequence[int],
+    lifted: Sequence[ViewLift],
+    guidance: Sequence[ViewGuidance],
+    config: FeatureConfig = FeatureConfig(),
+    *,
+    gaussians: Gaussians | None = None,
+    cameras: Cameras | None = None,
+    regions: Sequence[int] | None = None,
+    within: np.ndarray | None = None,
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """:func:`region_features` of several levels in one pass over the views.
+
+    Args:
+        labels: [N, K] integer region ids, column i for level ``levels[i]``.
+        levels: K levels, each 1, 2 or 3.
+        regions: R of each column (default its largest id + 1).
+        within: optional [N] bool; only these Gaussians count (a region's Gaussians outside
+            are ignored, its size included): the features of regions that lie inside, computed
+            with work proportional to the Gaussians inside.
+        lifted, guidance, config, gaussians, cameras: as :func:`region_features`.
+
+    Returns:
+        one ``(features, seen)`` per level, as :func:`region_features`.
+    """
+    start = time.perf_counter()
+    labels = np.asarray(labels)
+    if labels.ndim != 2 or labels.shape[1] != len(levels):
+        raise InputError("labels", f"must be [N, {len(levels)}], got {list(labels.shape)}")
+    for level in levels:
+        if isinstance(level, bool) or level not in (1, 2, 3):
+            raise InputError("level", f"must be 1, 2 or 3 (SAM levels s, m, l), got {level!r}")
+    counts = [None] * len(levels) if regions is None else list(regions)
+    checked = [_check_labels(labels[:, i], counts[i]) for i in range(len(levels))]
+    n = len(labels)
+    dims = {_check_views(lifted, guidance, n, level) for level in levels}
+    dim = dims.pop()
+    if config.mode == "centres":
+        for level in levels:
+            means, cameras = _check_geometry(gaussians, cameras, guidance, level, n)
+    if within is not None and np.asarray(within).shape != (n,):
+        raise InputError("within", f"must be [N] = [{n}] bool, got {np.asarray(within).shape}")
+    device = lifted[0].device
+    inside = None if within is None else torch.from_numpy(np.asarray(within, bool)).to(device)
+    accumulations = []
+    for level, (column, count) in zip(levels, checked):
+        region_of = torch.from_numpy(column).to(device)
+        kept = region_of if inside is None else region_of[inside]
+        sizes = torch.bincount(kept, minlength=count).double()
+        out = torch.zeros((count, dim), dtype=torch.float64, device=device)
+        accumulations.append(_Level(level, region_of, sizes, out))
+    if config.mode == "centres":
+        means = means.to(device)
+    for i, (view, masks) in enumerate(zip(lifted, guidance)):
+        if len(view) == 0 or len(masks.features) == 0:
+            continue
+        seen, max_weights, view_labels = view.gaussians.long(), view.max_weights, view.labels
+        if inside is not None:
+            keep = inside[seen]
+            seen, max_weights, view_labels = seen[keep], max_weights[keep], view_labels[keep]
+        features = torch.from_numpy(masks.features).to(device=device, dtype=torch.float64)
+        if config.mode == "shares":
+            _shares_view(accumulations, seen, max_weights, view_labels, features, config)
+        else:
+            segments = torch.from_numpy(masks.segments).to(device)
+            camera = cameras.select([i])
+            _centres_view(
+                accumulations, seen, max_weights, features, means, camera, segments, config
+            )
+    results = []
+    for accumulation in accumulations:
+        out = accumulation.out
+        norms = torch.linalg.vector_norm(out, dim=1)
+        seen_rows = norms > 0
+        out[seen_rows] /= norms[seen_rows, None]
+        results.append((out.float().cpu().numpy(), seen_rows.cpu().numpy()))
+        logger.info(
+            "region features (%s) at level %d: %d of %d regions seen in %d views",
+            config.mode,
+            accumulation.level,
+            int(seen_rows.sum()),
+            len(out),
+            len(lifted),
+        )
+    logger.info("region features of levels %s: %.2f s", list(levels), time.perf_counter() - start)
+    return results
 
 
 def region_features(
@@ -363,35 +479,16 @@ def region_features(
             outside its view's feature rows, views with different D, or mode ``"centres"``
             without ``gaussians`` and ``cameras`` (or with ones that do not match).
     """
-    start = time.perf_counter()
-    if isinstance(level, bool) or level not in (1, 2, 3):
-        raise InputError("level", f"must be 1, 2 or 3 (SAM levels s, m, l), got {level!r}")
-    labels, count = _check_labels(labels, regions)
-    dim = _check_views(lifted, guidance, len(labels), level)
-    if config.mode == "centres":
-        means, cameras = _check_geometry(gaussians, cameras, guidance, level, len(labels))
-    sizes = np.bincount(labels, minlength=count).astype(np.float64)
-    out = np.zeros((count, dim), dtype=np.float64)
-    for i, (view, masks) in enumerate(zip(lifted, guidance)):
-        if len(view) == 0 or len(masks.features) == 0:
-            continue
-        features = masks.features.astype(np.float64)
-        if config.mode == "shares":
-            _shares_view(out, labels, sizes, view, features, level, config)
-        else:
-            camera = cameras.select([i])
-            segments = masks.segments[level]
-            _centres_view(out, labels, sizes, view, features, means, camera, segments, config)
-    norms = np.linalg.norm(out, axis=1)
-    seen = norms > 0
-    out[seen] /= norms[seen, None]
-    logger.info(
-        "region features (%s) at level %d: %d of %d regions seen in %d views (%.2f s)",
-        config.mode,
-        level,
-        int(seen.sum()),
-        count,
-        len(lifted),
-        time.perf_counter() - start,
-    )
-    return out.astype(np.float32), seen
+    labels = np.asarray(labels)
+    if labels.ndim != 1:
+        raise InputError("labels", f"must be [N] region ids, got shape {list(labels.shape)}")
+    return level_features(
+        labels[:, None],
+        (level,),
+        lifted,
+        guidance,
+        config,
+        gaussians=gaussians,
+        cameras=cameras,
+        regions=None if regions is None else [regions],
+    )[0]

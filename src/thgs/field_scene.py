@@ -15,6 +15,9 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+import torch
+
+from thgs.device import resolve_device
 from thgs.errors import InputError
 from thgs.field import SemanticField, load_field, scene_fingerprint
 from thgs.scene import Cameras, Scene, load_scene
@@ -57,6 +60,7 @@ def open_field_scene(
     iteration: int | None = None,
     images: str | None = None,
     scale: float = 1.0,
+    device: torch.device | str = "cpu",
 ) -> tuple[SemanticField, Scene]:
     """Load a field and the scene it was built on.
 
@@ -64,6 +68,8 @@ def open_field_scene(
         field_path: the field file.
         scene: the scene folder or PLY; default the one recorded in the field. When given, the
             other arguments are :func:`thgs.scene.load_scene`'s; otherwise the recorded ones.
+        device: where the scene's Gaussians are put (after the fingerprint check); a name for
+            :func:`thgs.device.resolve_device` or a torch device.
 
     Raises:
         InputError: the field records no scene and none is given, the scene cannot be loaded,
@@ -100,7 +106,7 @@ def open_field_scene(
             "moved, reordered or retrained); rebuild the field for this scene",
         )
     logger.info("opened field %s on scene %s", field_path, loaded.ply_path)
-    return field, loaded
+    return field, loaded.to(resolve_device(device))
 
 
 def find_view(cameras: Cameras | None, name: str, source: str | os.PathLike[str]) -> int:

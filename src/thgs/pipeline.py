@@ -19,7 +19,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from thgs.errors import InputError
-from thgs.features import FeatureConfig, region_features
+from thgs.features import FeatureConfig, level_features
 from thgs.field import SemanticField, scene_fingerprint
 from thgs.graph import (
     GraphConfig,
@@ -31,7 +31,13 @@ from thgs.graph import (
     reweight,
 )
 from thgs.guidance import ViewGuidance
-from thgs.hierarchy import MergeConfig, RepeatConfig, group_repeated_parts, merge_levels
+from thgs.hierarchy import (
+    MergeConfig,
+    RepeatConfig,
+    gaussian_neighbors,
+    group_repeated_parts,
+    merge_levels,
+)
 from thgs.lift import LiftConfig, ViewLift, lift_views
 from thgs.scene import Cameras, Gaussians
 
@@ -357,8 +363,15 @@ class FieldConfig:
         )
 
     def to_json(self) -> dict[str, Any]:
-        """The config as JSON values (tuples become lists), as stored in the field file."""
-        return json.loads(json.dumps(asdict(self)))
+        """The config as JSON values (tuples become lists), as stored in the field file.
+
+        The rasterization's ``backend`` and ``precision`` say how the lifting ran, not what it
+        computes, and are left out: the same field is written whichever backend built it."""
+        document = json.loads(json.dumps(asdict(self)))
+        raster = document["superpoints"]["lift"]["raster"]
+        for key in ("backend", "precision"):
+            raster.pop(key)
+        return document
 
 
 PRESETS: dict[str, Callable[[], FieldConfig]] = {
@@ -388,23 +401,57 @@ class Levels:
     timings: dict[str, float]
 
 
-def _level_features(
+def _features(
     labels: np.ndarray,
-    level: int,
+    levels: Sequence[int],
     lifted: LiftedScene,
     guidance: Sequence[ViewGuidance],
     config: FeatureConfig,
-) -> tuple[np.ndarray, np.ndarray]:
-    """[R_k, D] features and [R_k] seen flags of the level-``level`` regions of [N, 4] labels."""
-    return region_features(
-        labels[:, level],
-        level,
+    within: np.ndarray | None = None,
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Features and seen flags of the regions of [N, 4] labels at ``levels``, in one pass."""
+    return level_features(
+        labels[:, list(levels)],
+        levels,
         lifted.lifted,
         guidance,
         config,
         gaussians=lifted.gaussians,
         cameras=lifted.cameras,
+        within=within,
     )
+
+
+def _regrouped_part_features(
+    before: np.ndarray,
+    after: np.ndarray,
+    features: tuple[np.ndarray, np.ndarray],
+    lifted: LiftedScene,
+    guidance: Sequence[ViewGuidance],
+    config: FeatureConfig,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Level-2 features after repeated parts were grouped: a region made of one former region
+    keeps its feature; a joined one is computed again over its own Gaussians only.
+
+    Args:
+        before, after: [N] level-2 regions before and after grouping.
+        features: ``(features, seen)`` of the regions before.
+    """
+    pairs = np.unique(np.stack([after, before], axis=1), axis=0)
+    count = int(after.max()) + 1
+    pieces = np.bincount(pairs[:, 0], minlength=count)
+    out_features = np.zeros((count, features[0].shape[1]), dtype=features[0].dtype)
+    out_seen = np.zeros(count, dtype=bool)
+    single = pieces[pairs[:, 0]] == 1
+    out_features[pairs[single, 0]] = features[0][pairs[single, 1]]
+    out_seen[pairs[single, 0]] = features[1][pairs[single, 1]]
+    joined = pieces > 1
+    if joined.any():
+        labels = np.zeros((len(after), 4), dtype=np.int64)
+        labels[:, 2] = after
+        again, seen = _features(labels, (2,), lifted, guidance, config, within=joined[after])[0]
+        out_features[joined], out_seen[joined] = again[joined], seen[joined]
+    return out_features, out_seen
 
 
 def build_levels(
@@ -441,29 +488,40 @@ def build_levels(
     for name in ("knn", "votes", "reweight", "partition"):
         logger.info("%s: %.2f s", name, report.seconds[name])
     stage("merge", 0)
-    merged = merge_levels(gaussians, superpoints, lifted.lifted, config.merge)
-    merge_seconds = dict(merged.seconds)
-    if config.repeats.enabled and config.merge.mode == "progressive":
-        started = time.perf_counter()
-        parts, _ = _level_features(merged.labels, 2, lifted, guidance, config.features)
-        merged = group_repeated_parts(gaussians, merged, parts, config.repeats)
-        merge_seconds["repeats"] = time.perf_counter() - started
+    started = time.perf_counter()
+    neighbors = gaussian_neighbors(gaussians, config.merge.neighbors)
+    adjacency_seconds = time.perf_counter() - started
+    merged = merge_levels(gaussians, superpoints, lifted.lifted, config.merge, neighbors=neighbors)
+    merge_seconds = {**merged.seconds}
+    merge_seconds["adjacency"] = adjacency_seconds  # the shared neighbours, computed here
     stage("merge", 1)
-    for name, seconds in merge_seconds.items():
-        logger.info("merge %s: %.2f s", name, seconds)
     stage("features", 0)
     started = time.perf_counter()
-    features, seen = zip(
-        *(_level_features(merged.labels, k, lifted, guidance, config.features) for k in (1, 2, 3))
-    )
+    features = _features(merged.labels, (1, 2, 3), lifted, guidance, config.features)
     feature_seconds = time.perf_counter() - started
+    if config.repeats.enabled and config.merge.mode == "progressive":
+        started = time.perf_counter()
+        before = merged.labels[:, 2]
+        shared = neighbors if config.repeats.neighbors == config.merge.neighbors else None
+        merged = group_repeated_parts(
+            gaussians, merged, features[1][0], config.repeats, neighbors=shared
+        )
+        merge_seconds["repeats"] = time.perf_counter() - started
+        started = time.perf_counter()
+        features[1] = _regrouped_part_features(
+            before, merged.labels[:, 2], features[1], lifted, guidance, config.features
+        )
+        feature_seconds += time.perf_counter() - started
     stage("features", 1)
+    for name, seconds in merge_seconds.items():
+        logger.info("merge %s: %.2f s", name, seconds)
     logger.info("features: %.2f s", feature_seconds)
+    features_of, seen_of = zip(*features)
     return Levels(
         labels=merged.labels,
         parents=merged.parents,
-        features=features,
-        seen=seen,
+        features=features_of,
+        seen=seen_of,
         timings={**report.seconds, **merge_seconds, "features": feature_seconds},
     )
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Literal
 
 import tyro
 
@@ -22,6 +22,7 @@ def bench(
     gaussians: int | None = None,
     views: int | None = None,
     cache: Path | None = None,
+    device: Literal["auto", "cpu", "cuda", "mps"] = "auto",
     verbose: bool = False,
 ) -> None:
     """Build the synthetic scenes with the full method and each ablation; time, memory, scores.
@@ -40,13 +41,15 @@ def bench(
         gaussians: override the presets' Gaussian count (quick runs).
         views: override the presets' view count.
         cache: where synthetic datasets are kept (default ~/.cache/thgs).
+        device: where to build and score: auto (a CUDA GPU if torch sees one, else MPS, else the
+            CPU), cpu, cuda or mps.
         verbose: log every stage.
     """
     from thgs.bench import BenchConfig, require_matplotlib, run_bench, write_bench
 
     setup_logging(verbose)
     require_matplotlib()
-    config = BenchConfig(seeds=seeds, gaussians=gaussians, views=views, cache=cache)
+    config = BenchConfig(seeds=seeds, gaussians=gaussians, views=views, cache=cache, device=device)
     if presets:
         config = replace(config, presets=presets)
     if variants:

@@ -50,6 +50,7 @@ def build(
     space: str | None = None,
     reference: bool = False,
     repeated_parts: bool = True,
+    device: Literal["auto", "cpu", "cuda", "mps"] = "auto",
     verbose: bool = False,
 ) -> None:
     """Build the semantic field of a scene from its views' masks and mask features.
@@ -79,8 +80,11 @@ def build(
         repeated_parts: group an object's alike parts that touch only through another part (a
             table's legs) into one part; --no-repeated-parts keeps one part per piece (the
             paper's top-3 query selection scores such pieces better: docs/build.md).
+        device: where to compute: auto (a CUDA GPU if torch sees one, else MPS, else the CPU),
+            cpu, cuda or mps; rendering uses the device's best backend (docs/rendering.md).
         verbose: log every stage with its time.
     """
+    from thgs.device import resolve_device
     from thgs.field import save_field
     from thgs.field_scene import record_scene
     from thgs.guidance import load_guidance, read_embedding_space
@@ -112,7 +116,9 @@ def build(
     if not repeated_parts:
         config = replace(config, repeats=replace(config.repeats, enabled=False))
     with stage_progress() as bar:
-        field = build_field(loaded, views, config, space=space, progress=StageBars(bar))
+        field = build_field(
+            loaded.to(resolve_device(device)), views, config, space=space, progress=StageBars(bar)
+        )
     field = record_scene(
         field, scene, source=source, iteration=iteration, images=images, scale=scale
     )

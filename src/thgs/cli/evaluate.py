@@ -39,6 +39,7 @@ def evaluate(
     out: Annotated[Path | None, tyro.conf.arg(aliases=("-o",))] = None,
     scene: Path | None = None,
     text_model: Path | None = None,
+    device: Literal["auto", "cpu", "cuda", "mps"] = "auto",
     verbose: bool = False,
 ) -> None:
     """Score a semantic field against a benchmark's ground truth.
@@ -61,6 +62,8 @@ def evaluate(
         out: the JSON report (default: <field>.eval.json); the table goes to the same name .md.
         scene: the scene the field was built on, if not where the field says.
         text_model: a local folder with the text model, instead of the default location.
+        device: where to render: auto (a CUDA GPU if torch sees one, else MPS, else the CPU),
+            cpu, cuda or mps (docs/rendering.md).
         verbose: log what is loaded and how long it takes.
     """
     from thgs._atomic import atomic_output
@@ -81,7 +84,7 @@ def evaluate(
             "scannet/*.labels.ply, ground_truth.safetensors); name it with --labels, "
             "--segmentations or --scannet",
         )
-    semantic, loaded = open_field_scene(field, scene)
+    semantic, loaded = open_field_scene(field, scene, device=device)
     encoder = load_text_encoder(semantic.space, model_path=text_model)
     segmenter = Segmenter(Regions.from_field(semantic), encoder, source=str(field))
     with stage_progress() as bar:

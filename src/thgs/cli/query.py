@@ -15,6 +15,7 @@ from thgs.errors import InputError, ThgsError
 __all__ = ["export", "pick", "query"]
 
 Mode = Literal["reference", "level", "threshold"]
+Device = Literal["auto", "cpu", "cuda", "mps"]
 
 
 def _query_config(
@@ -92,6 +93,7 @@ def query(
     mask_threshold: float = 0.5,
     scene: Path | None = None,
     text_model: Path | None = None,
+    device: Device = "auto",
     verbose: bool = False,
 ) -> None:
     """Ask a semantic field in words: which regions, how many Gaussians, and where in the views.
@@ -117,6 +119,8 @@ def query(
         mask_threshold: rendered opacity above which a pixel is in the mask.
         scene: the scene the field was built on, if not where the field says.
         text_model: a local folder with the text model, instead of the default location.
+        device: where to render: auto (a CUDA GPU if torch sees one, else MPS, else the CPU),
+            cpu, cuda or mps (docs/rendering.md).
         verbose: log what is loaded and how long it takes.
     """
     from thgs.export import write_json, write_map_png, write_mask_png
@@ -133,7 +137,7 @@ def query(
         raise InputError("--relevancy", "name the views to draw in with --views")
     config = _query_config(mode, level, top, threshold, min_gaussians)
     if views:
-        semantic, loaded = open_field_scene(field, scene)
+        semantic, loaded = open_field_scene(field, scene, device=device)
     else:
         semantic, loaded = load_field(field), None
     fq = _field_query(field, semantic, text_model, config)
@@ -202,6 +206,7 @@ def pick(
     level: int = 1,
     scene: Path | None = None,
     out: Annotated[Path | None, tyro.conf.arg(aliases=("-o",))] = None,
+    device: Device = "auto",
     verbose: bool = False,
 ) -> None:
     """Click a pixel: the Gaussian under it and its region at every level.
@@ -217,6 +222,8 @@ def pick(
         level: the level to select: 0 superpoints, 1 sub-parts, 2 parts, 3 objects.
         scene: the scene the field was built on, if not where the field says.
         out: folder for pick.json, the mask PNG and the region's PLY.
+        device: where to render: auto (a CUDA GPU if torch sees one, else MPS, else the CPU),
+            cpu, cuda or mps (docs/rendering.md).
         verbose: log what is loaded.
     """
     from thgs.export import write_json, write_mask_png, write_selection_ply
@@ -228,7 +235,7 @@ def pick(
     setup_logging(verbose)
     if level not in (0, 1, 2, 3):
         raise InputError("--level", f"must be 0, 1, 2 or 3, got {level}")
-    semantic, loaded = open_field_scene(field, scene)
+    semantic, loaded = open_field_scene(field, scene, device=device)
     index = find_view(loaded.cameras, view, loaded.cameras_path or loaded.ply_path)
     camera = loaded.cameras.select([index])
     picked = pick_pixel(semantic, loaded.gaussians, camera, pixel)

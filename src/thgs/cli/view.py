@@ -24,6 +24,7 @@ def view(
     mode: Literal["best", "threshold", "paper"] = "best",
     threshold: float | None = None,
     text_model: Path | None = None,
+    device: Literal["auto", "cpu", "cuda", "mps"] = "auto",
     verbose: bool = False,
 ) -> None:
     """Explore a semantic field in the browser: text queries, click-to-pick, climbing the
@@ -45,6 +46,8 @@ def view(
             of the level above --threshold) or paper (top 3 of parts and objects).
         threshold: relevancy for the threshold mode (default: the embedding space's).
         text_model: a local folder with the text model, instead of the default location.
+        device: where to render: auto (a CUDA GPU if torch sees one, else MPS, else the CPU),
+            cpu, cuda or mps (docs/rendering.md).
         verbose: log what is loaded and every action.
     """
     from thgs.viewer.app import start_viewer, viewer_url
@@ -53,7 +56,13 @@ def view(
     setup_logging(verbose)
     config = ViewerConfig(level=level, mode=mode, threshold=threshold).check()
     app = start_viewer(
-        field, scene=scene, host=host, port=port, text_model=text_model, config=config
+        field,
+        scene=scene,
+        host=host,
+        port=port,
+        text_model=text_model,
+        config=config,
+        device=device,
     )
     try:
         count = f"{len(app.state):,} Gaussians" if app.state is not None else "no field open"

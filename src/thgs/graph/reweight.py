@@ -17,6 +17,8 @@ from typing import Literal
 
 import numba
 import numpy as np
+import torch
+from torch import Tensor
 
 from thgs.errors import InputError
 from thgs.graph.knn import KnnGraph
@@ -91,13 +93,10 @@ class ReweightConfig:
             )
 
 
-@numba.njit(cache=True)
-def _count_view(neighbors, gaussians, labels, votes, dense, pos, neg):
-    """Add one view's votes: ``dense`` is an all −1 [N] scratch array, restored on return.
-
-    Serial on purpose: one view is ~1 ms of work, less than the cost of waking threads (and far
-    less than waiting for a descheduled one on a busy machine).
-    """
+@numba.njit(nogil=True, cache=True)
+def _count_view(neighbors, gaussians, labels, votes, dense, pos, neg):  # pragma: no cover
+    """Add one view's votes on the CPU: ``dense`` is an all −1 [N] scratch array, restored on
+    return. The same sums as the torch path of :func:`edge_counts`, in the same order."""
     n = gaussians.shape[0]
     for t in range(n):
         dense[gaussians[t]] = labels[t]
@@ -122,6 +121,40 @@ def _count_view(neighbors, gaussians, labels, votes, dense, pos, neg):
         dense[gaussians[t]] = -1
 
 
+def _view_votes(view: ViewLift, config: ReweightConfig) -> tuple[Tensor, Tensor, Tensor]:
+    """A view's voting Gaussians: [n] indices, [n] int32 labels (−1 = no vote) and [n] float32
+    votes ``f(z)``."""
+    labels = view.labels[:, config.level].int()
+    if config.min_max_weight > 0:
+        labels = torch.where(view.max_weights >= config.min_max_weight, labels, -1)
+    if config.depth_decay:
+        votes = 1.0 / (1.0 + (view.depths.float() - config.depth_start).clamp_min(0))
+    else:
+        votes = torch.ones(len(view), dtype=torch.float32, device=view.device)
+    return view.gaussians.long(), labels, votes
+
+
+def _count_view_torch(
+    neighbors: Tensor,
+    view: ViewLift,
+    config: ReweightConfig,
+    dense: Tensor,
+    pos: Tensor,
+    neg: Tensor,
+) -> None:
+    """Add one view's votes with tensor operations on any device (``neighbors`` has −1 replaced
+    by N, ``dense`` [N + 1] is all −1 and restored on return)."""
+    gaussians, labels, votes = _view_votes(view, config)
+    voting = labels >= 0
+    sources, own = gaussians[voting], labels[voting]
+    dense[gaussians] = labels
+    other = dense[neighbors[sources]]
+    same = other == own[:, None]
+    pos[sources] += votes[voting][:, None] * same
+    neg[sources] += votes[voting][:, None] * ((other >= 0) & ~same)
+    dense[gaussians] = -1
+
+
 def edge_counts(
     graph: KnnGraph, views: Sequence[ViewLift], config: ReweightConfig = ReweightConfig()
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -133,9 +166,14 @@ def edge_counts(
     the depth of ``i`` in that view. Then clamp both to [0, cap]. The edge ``j → i``, if present,
     collects its own votes, weighted by ``f(z_j)``.
 
+    The votes are counted on the views' device: a compiled loop on the CPU, one gather of the
+    voting Gaussians' neighbours per view elsewhere (the same sums in the same order); the counts
+    come back to the CPU, where the graph is cut.
+
     Args:
         graph: the [N, K] KNN graph.
-        views: the lifted masks of each view (sparse: only the Gaussians the view sees).
+        views: the lifted masks of each view (sparse: only the Gaussians the view sees), all on
+            one device.
         config: level, depth law, cap and visibility threshold.
 
     Returns:
@@ -145,29 +183,30 @@ def edge_counts(
     started = time.perf_counter()
     n = len(graph)
     graph.check(n, source="edge_counts graph")  # the kernel indexes without bounds checks
-    neighbors = np.ascontiguousarray(graph.neighbors)
-    pos = np.zeros(neighbors.shape, dtype=np.float32)
-    neg = np.zeros(neighbors.shape, dtype=np.float32)
-    dense = np.full(n, -1, dtype=np.int32)
+    device = views[0].device if views else torch.device("cpu")
     for index, view in enumerate(views):
         view.check(n, source=f"view {index}")
-        labels = np.asarray(view.labels[:, config.level], dtype=np.int32)
-        if config.min_max_weight > 0:
-            labels = np.where(view.max_weights >= config.min_max_weight, labels, -1)
-        if config.depth_decay:
-            excess = np.maximum(np.asarray(view.depths, dtype=np.float32) - config.depth_start, 0)
-            votes = (1.0 / (1.0 + excess)).astype(np.float32)
-        else:
-            votes = np.ones(len(view), dtype=np.float32)
-        _count_view(
-            neighbors,
-            np.ascontiguousarray(view.gaussians, dtype=np.int32),
-            np.ascontiguousarray(labels),
-            votes,
-            dense,
-            pos,
-            neg,
-        )
+        if view.device != device:
+            raise InputError(f"view {index}", f"is on {view.device}, view 0 on {device}")
+    if device.type == "cpu":
+        neighbors = np.ascontiguousarray(graph.neighbors)
+        pos = np.zeros(neighbors.shape, dtype=np.float32)
+        neg = np.zeros(neighbors.shape, dtype=np.float32)
+        dense = np.full(n, -1, dtype=np.int32)
+        for view in views:
+            gaussians, labels, votes = _view_votes(view, config)
+            _count_view(
+                neighbors, gaussians.numpy(), labels.numpy(), votes.numpy(), dense, pos, neg
+            )
+    else:
+        targets = torch.from_numpy(np.ascontiguousarray(graph.neighbors)).to(device).long()
+        targets = torch.where(targets >= 0, targets, n)
+        pos_t = torch.zeros(targets.shape, dtype=torch.float32, device=device)
+        neg_t = torch.zeros(targets.shape, dtype=torch.float32, device=device)
+        dense_t = torch.full((n + 1,), -1, dtype=torch.int32, device=device)
+        for view in views:
+            _count_view_torch(targets, view, config, dense_t, pos_t, neg_t)
+        pos, neg = pos_t.cpu().numpy(), neg_t.cpu().numpy()
     np.minimum(pos, config.cap, out=pos)
     np.minimum(neg, config.cap, out=neg)
     log.info(

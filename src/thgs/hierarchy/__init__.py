@@ -6,23 +6,22 @@ merged.parents    # per level, the parent region of each region
 merged = group_repeated_parts(gaussians, merged, part_features)   # a table's legs: one part
 """
 
-from thgs.hierarchy.adjacency import UnitGraph, gaussian_neighbors, unit_graph
-from thgs.hierarchy.merge import (
-    MergeConfig,
-    MergedLevels,
-    merge_levels,
-    pair_affinity,
-    parents_of,
-)
+from thgs.hierarchy.adjacency import UnitGraph, coarsened_graph, gaussian_neighbors, unit_graph
+from thgs.hierarchy.affinity import MaskEvidence, Source, mask_evidence, pair_affinity
+from thgs.hierarchy.merge import MergeConfig, MergedLevels, merge_levels, parents_of
 from thgs.hierarchy.repeats import RepeatConfig, group_repeated_parts, repeated_part_pairs
 
 __all__ = [
+    "MaskEvidence",
     "MergeConfig",
     "MergedLevels",
     "RepeatConfig",
+    "Source",
     "UnitGraph",
+    "coarsened_graph",
     "gaussian_neighbors",
     "group_repeated_parts",
+    "mask_evidence",
     "merge_levels",
     "pair_affinity",
     "parents_of",

@@ -17,7 +17,7 @@ from thgs.errors import InputError
 from thgs.graph.knn import _query
 from thgs.scene.gaussians import Gaussians
 
-__all__ = ["UnitGraph", "gaussian_neighbors", "unit_graph"]
+__all__ = ["UnitGraph", "coarsened_graph", "gaussian_neighbors", "unit_graph"]
 
 
 def gaussian_neighbors(gaussians: Gaussians, k: int = 8) -> np.ndarray:
@@ -58,6 +58,24 @@ class UnitGraph:
         return int(self.one_hop.shape[0])
 
 
+def _graph_from_edges(a: np.ndarray, b: np.ndarray, count: int) -> UnitGraph:
+    """The adjacency of ``count`` units from touching unit pairs (a[i], b[i]), a ≠ b."""
+    # int64 counts: a narrow dtype would wrap when many Gaussian pairs join two units
+    one = coo_matrix((np.ones(a.size, dtype=np.int64), (a, b)), shape=(count, count)).tocsr()
+    one = ((one + one.T) > 0).astype(np.int64).tocsr()
+    two = (one @ one + one).tocsr()
+    two.setdiag(0)
+    two.eliminate_zeros()
+    upper = coo_matrix(two)
+    keep = upper.row < upper.col
+    pairs = np.stack([upper.row[keep], upper.col[keep]], axis=1).astype(np.int64)
+    order = np.lexsort((pairs[:, 1], pairs[:, 0]))
+    pairs = pairs[order]
+    adjacent = np.asarray(one[pairs[:, 0], pairs[:, 1]]).ravel() > 0 if len(pairs) else []
+    hops = np.where(adjacent, 1, 2).astype(np.int8)
+    return UnitGraph(one_hop=one.astype(bool).tocsr(), pairs=pairs, hops=hops)
+
+
 def unit_graph(units: np.ndarray, neighbors: np.ndarray, count: int | None = None) -> UnitGraph:
     """The 1-hop and 2-hop adjacency of the units of N Gaussians.
 
@@ -71,18 +89,19 @@ def unit_graph(units: np.ndarray, neighbors: np.ndarray, count: int | None = Non
     a = np.repeat(units, neighbors.shape[1])
     b = units[neighbors.ravel()]
     different = a != b
-    a, b = a[different], b[different]
-    # int64 counts: a narrow dtype would wrap when many Gaussian pairs join two units
-    one = coo_matrix((np.ones(a.size, dtype=np.int64), (a, b)), shape=(u, u)).tocsr()
-    one = ((one + one.T) > 0).astype(np.int64).tocsr()
-    two = (one @ one + one).tocsr()
-    two.setdiag(0)
-    two.eliminate_zeros()
-    upper = coo_matrix(two)
-    keep = upper.row < upper.col
-    pairs = np.stack([upper.row[keep], upper.col[keep]], axis=1).astype(np.int64)
-    order = np.lexsort((pairs[:, 1], pairs[:, 0]))
-    pairs = pairs[order]
-    adjacent = np.asarray(one[pairs[:, 0], pairs[:, 1]]).ravel() > 0 if len(pairs) else []
-    hops = np.where(adjacent, 1, 2).astype(np.int8)
-    return UnitGraph(one_hop=one.astype(bool).tocsr(), pairs=pairs, hops=hops)
+    return _graph_from_edges(a[different], b[different], u)
+
+
+def coarsened_graph(graph: UnitGraph, groups: np.ndarray, count: int) -> UnitGraph:
+    """The adjacency of ``count`` regions made of the graph's units: two regions touch when
+    some of their units touch, which is what :func:`unit_graph` gives for the regions' Gaussians.
+
+    Args:
+        graph: the units' adjacency.
+        groups: [U] int region of every unit, 0 … count − 1.
+    """
+    one = graph.one_hop.tocoo()
+    groups = np.asarray(groups, dtype=np.int64)
+    a, b = groups[one.row], groups[one.col]
+    different = a != b
+    return _graph_from_edges(a[different], b[different], count)

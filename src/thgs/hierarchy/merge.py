@@ -32,20 +32,22 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, replace
+from itertools import chain
 from typing import Literal
 
 import numba
 import numpy as np
-from scipy.sparse import coo_matrix
+import torch
 
 from thgs.errors import InputError
-from thgs.hierarchy.adjacency import UnitGraph, gaussian_neighbors, unit_graph
+from thgs.hierarchy.adjacency import UnitGraph, coarsened_graph, gaussian_neighbors, unit_graph
+from thgs.hierarchy.affinity import MaskEvidence, Source, mask_evidence, pair_affinity
 from thgs.lift import ViewLift
 from thgs.scene.gaussians import Gaussians
 
-__all__ = ["MergeConfig", "MergedLevels", "merge_levels", "pair_affinity", "parents_of"]
+__all__ = ["MergeConfig", "MergedLevels", "merge_levels", "parents_of"]
 
 log = logging.getLogger(__name__)
 
@@ -159,85 +161,21 @@ class MergedLevels:
         return tuple(int(self.labels[:, k].max()) + 1 for k in range(4))
 
 
-Source = tuple[np.ndarray, ...]
-"""One view's labels at one level: ([n] Gaussian indices, [n] mask ids, −1 = none) and optionally
-[n] non-negative weights of the labels (1 when absent)."""
-
-
 def _sources(
     lifted: Sequence[ViewLift], column: int, config: MergeConfig, stride: int = 1
-) -> list[Source]:
-    """Per view (every ``stride``-th), the Gaussians with ``max w ≥ min_max_weight``, their
-    labels in ``column`` and their weights ``(max w)^visibility_power``."""
-    sources: list[Source] = []
+) -> Iterator[Source]:
+    """Per view (every ``stride``-th), on the views' device: the Gaussians with ``max w ≥
+    min_max_weight``, their labels in ``column`` and their weights ``(max w)^visibility_power``
+    (no weights when the power is 0: every label weighs 1). Made one view at a time, as they
+    are consumed, so that they never all take memory at once."""
     for view in lifted[::stride]:
         visible = view.max_weights >= config.min_max_weight
-        labels = view.labels[visible, column]
+        gaussians = view.gaussians[visible].long()
+        labels = view.labels[visible, column].long()
         if config.visibility_power == 0:
-            sources.append((view.gaussians[visible], labels))
+            yield gaussians, labels
         else:
-            weights = view.max_weights[visible].astype(np.float64) ** config.visibility_power
-            sources.append((view.gaussians[visible], labels, weights))
-    return sources
-
-
-def pair_affinity(
-    units: np.ndarray, count: int, pairs: np.ndarray, sources: Sequence[Source]
-) -> np.ndarray:
-    """``A(a, b) = Σ_v s_a s_b cos(h_a, h_b) / Σ_v s_a s_b`` for every pair, 0 without evidence.
-
-    ``h_u^v`` is the (weighted) histogram of mask labels over u's Gaussians labelled in view v,
-    ``s_u^v`` their summed weight over |u|.
-
-    Args:
-        units: [N] unit id per Gaussian, 0 … count − 1.
-        count: U, the number of units.
-        pairs: [P, 2] unit pairs.
-        sources: per view (and level), the labelled Gaussians, their mask ids and optionally
-            their weights (each label weighs 1 without them).
-
-    Returns:
-        [P] float64 affinities in [0, 1].
-    """
-    units = np.asarray(units, dtype=np.int64)
-    sizes = np.bincount(units, minlength=count).astype(np.float64)
-    keys = pairs[:, 0] * count + pairs[:, 1]
-    numerator = np.zeros(len(pairs))
-    denominator = np.zeros(len(pairs))
-    for source in sources:
-        gaussians, labels = source[0], source[1]
-        labelled = labels >= 0
-        if len(source) > 2:
-            labelled &= source[2] > 0
-        if not labelled.any():
-            continue
-        unit = units[gaussians[labelled]]
-        weights = (
-            np.asarray(source[2], dtype=np.float64)[labelled]
-            if len(source) > 2
-            else np.ones(unit.size)
-        )
-        masks, mask = np.unique(labels[labelled], return_inverse=True)
-        histogram = coo_matrix((weights, (unit, mask)), shape=(count, masks.size)).tocsr()
-        norms = np.sqrt(np.asarray(histogram.multiply(histogram).sum(axis=1)).ravel())
-        share = np.bincount(unit, weights=weights, minlength=count) / np.maximum(sizes, 1)
-        scale = np.divide(1.0, norms, out=np.zeros(count), where=norms > 0)
-        normalized = histogram.multiply(scale[:, None]).tocsr()
-        cosines = coo_matrix(normalized @ normalized.T)
-        found = cosines.row < cosines.col
-        product_keys = cosines.row[found].astype(np.int64) * count + cosines.col[found]
-        order = np.argsort(product_keys)
-        product_keys, values = product_keys[order], cosines.data[found][order]
-        at = np.searchsorted(product_keys, keys)
-        at_valid = at < product_keys.size
-        hit = np.zeros(len(pairs), dtype=bool)
-        hit[at_valid] = product_keys[at[at_valid]] == keys[at_valid]
-        cos = np.zeros(len(pairs))
-        cos[hit] = values[at[hit]]
-        weight = share[pairs[:, 0]] * share[pairs[:, 1]]
-        numerator += weight * cos
-        denominator += weight
-    return np.divide(numerator, denominator, out=np.zeros(len(pairs)), where=denominator > 0)
+            yield gaussians, labels, view.max_weights[visible].double() ** config.visibility_power
 
 
 @numba.njit(cache=True)
@@ -292,22 +230,14 @@ def _both_directions(graph: UnitGraph, values: np.ndarray):
     return indptr, cols[order], hops, both
 
 
-def _grow_round(
-    units: np.ndarray,
-    neighbors: np.ndarray,
-    sources: Sequence[Source],
-    threshold: float,
-    config: MergeConfig,
-) -> np.ndarray:
-    """[U] region id of every unit after one round of region growing."""
-    count = int(units.max()) + 1
-    graph = unit_graph(units, neighbors, count)
+def _grow_round(graph: UnitGraph, evidence: MaskEvidence, threshold: float, config: MergeConfig):
+    """[U] region id of every unit of ``graph`` after one round of region growing."""
     if config.two_hop_weight == 0:  # 2-hop members do not count: no affinity needed for them
         touching = graph.hops == 1
         graph = UnitGraph(graph.one_hop, graph.pairs[touching], graph.hops[touching])
-    affinity = pair_affinity(units, count, graph.pairs, sources)
+    affinity = pair_affinity(evidence, graph.pairs)
     indptr2, indices2, hops2, affinity2 = _both_directions(graph, affinity)
-    sizes = np.bincount(units, minlength=count).astype(np.float64)
+    sizes = evidence.sizes.cpu().numpy()
     one = graph.one_hop
     return _grow(
         one.indptr.astype(np.int64),
@@ -326,30 +256,41 @@ def _grow_round(
 def _merge_pass(
     units: np.ndarray,
     neighbors: np.ndarray,
-    sources: Sequence[Source],
+    sources: Iterable[Source],
     threshold: float,
     config: MergeConfig,
+    device: torch.device,
 ) -> np.ndarray:
     """[N] int32 region of every Gaussian after one pass over ``units`` [N] (0 … U − 1):
-    ``config.rounds`` rounds of growing at most, each on the previous round's regions, stopping
-    when a round merges nothing; numbered in order of their smallest unit."""
-    regions = units
+    ``config.rounds`` rounds of growing at most, each on the previous round's regions (their
+    adjacency and evidence pooled from the units'), stopping when a round merges nothing;
+    numbered in order of their smallest unit."""
+    count = int(units.max()) + 1
+    graph = unit_graph(units, neighbors, count)
+    evidence = mask_evidence(torch.from_numpy(units).to(device), count, sources)
+    region_of_unit = np.arange(count)
     for _ in range(config.rounds):
-        count = int(regions.max()) + 1
-        grown = _grow_round(regions, neighbors, sources, threshold, config)
-        merged = int(grown.max()) + 1 < count
-        regions = _renumber_by_units(grown[regions], units).astype(np.int64)
+        grown = _grow_round(graph, evidence, threshold, config)  # per current region
+        regions = int(grown.max()) + 1
+        merged = regions < graph.units
+        renumbered = _renumber_by_units(grown[region_of_unit], np.arange(count)).astype(np.int64)
+        new_of_current = np.zeros(graph.units, dtype=np.int64)
+        new_of_current[region_of_unit] = renumbered
+        region_of_unit = renumbered
         if not merged:
             break
-    return regions.astype(np.int32)
+        graph = coarsened_graph(graph, new_of_current, regions)
+        evidence = evidence.pooled(torch.from_numpy(new_of_current), regions)
+    return region_of_unit[units].astype(np.int32)
 
 
 def _absorb(
     regions: np.ndarray,
     units: np.ndarray,
     neighbors: np.ndarray,
-    sources: Sequence[Source],
+    sources: Iterable[Source],
     config: MergeConfig,
+    device: torch.device,
 ) -> np.ndarray:
     """[N] level-3 regions after small regions joined their most similar touching neighbour.
 
@@ -364,7 +305,8 @@ def _absorb(
         return regions
     graph = unit_graph(regions, neighbors, count)
     touching = graph.pairs[graph.hops == 1]
-    affinity = pair_affinity(regions, count, touching, sources)
+    evidence = mask_evidence(torch.from_numpy(regions).to(device), count, sources)
+    affinity = pair_affinity(evidence, touching)
     a = np.concatenate([touching[:, 0], touching[:, 1]])
     b = np.concatenate([touching[:, 1], touching[:, 0]])
     score = np.concatenate([affinity, affinity])
@@ -411,6 +353,8 @@ def merge_levels(
     superpoints: np.ndarray,
     lifted: Sequence[ViewLift],
     config: MergeConfig = MergeConfig(),
+    *,
+    neighbors: np.ndarray | None = None,
 ) -> MergedLevels:
     """Levels 1–3 of the hierarchy from level-0 superpoints and the lifted s/m/l labels.
 
@@ -419,6 +363,8 @@ def merge_levels(
         superpoints: [N] int level-0 ids 0 … S−1 (:func:`thgs.pipeline.partition_scene`).
         lifted: one :class:`thgs.lift.ViewLift` per view (columns 1, 2, 3: s, m, l).
         config: thresholds, adjacency, absorption, ablation mode.
+        neighbors: the [N, config.neighbors] output of :func:`gaussian_neighbors` for these
+            Gaussians, when the caller has it (computed otherwise).
 
     Returns:
         :class:`MergedLevels`; in ``progressive`` and ``instance`` modes every level-k region lies
@@ -436,18 +382,24 @@ def merge_levels(
         raise InputError("superpoints", "no Gaussians to merge")
     if superpoints.min() < 0 or np.unique(superpoints).size != int(superpoints.max()) + 1:
         raise InputError("superpoints", "ids must be 0 … S−1, each used")
+    device = lifted[0].device if lifted else torch.device("cpu")
     for index, view in enumerate(lifted):
         view.check(n, source=f"lifted view {index}")
+        if view.device != device:
+            raise InputError(f"lifted view {index}", f"is on {view.device}, view 0 on {device}")
     seconds: dict[str, float] = {}
     started = time.perf_counter()
-    neighbors = gaussian_neighbors(gaussians, config.neighbors)
+    if neighbors is None:
+        neighbors = gaussian_neighbors(gaussians, config.neighbors)
+    elif neighbors.shape != (n, config.neighbors):
+        raise InputError("neighbors", f"must be [N, k] = [{n}, {config.neighbors}]")
     seconds["adjacency"] = time.perf_counter() - started
     base = superpoints.astype(np.int64)
     levels = [base.astype(np.int32)]
     if config.mode == "instance":
         started = time.perf_counter()
         regions = _merge_pass(
-            base, neighbors, _sources(lifted, 3, config), config.thresholds[2], config
+            base, neighbors, _sources(lifted, 3, config), config.thresholds[2], config, device
         )
         seconds["level 3"] = time.perf_counter() - started
         levels += [regions, regions, regions]
@@ -456,9 +408,11 @@ def merge_levels(
             started = time.perf_counter()
             sources = _sources(lifted, k, config)
             if k == 1 and config.seg_enhance:
-                sources += _sources(lifted, 2, config, config.enhance_stride)
+                sources = chain(sources, _sources(lifted, 2, config, config.enhance_stride))
             units = base if config.mode == "independent" else levels[-1].astype(np.int64)
-            levels.append(_merge_pass(units, neighbors, sources, config.thresholds[k - 1], config))
+            levels.append(
+                _merge_pass(units, neighbors, sources, config.thresholds[k - 1], config, device)
+            )
             seconds[f"level {k}"] = time.perf_counter() - started
     if config.min_region_gaussians > 0 and config.mode != "independent":
         started = time.perf_counter()
@@ -469,6 +423,7 @@ def merge_levels(
             neighbors,
             _sources(lifted, 3, config),
             config,
+            device,
         )
         regions = _renumber_by_units(absorbed, last_units)
         levels[3] = regions

@@ -124,6 +124,8 @@ def group_repeated_parts(
     merged: MergedLevels,
     part_features: np.ndarray,
     config: RepeatConfig = RepeatConfig(),
+    *,
+    neighbors: np.ndarray | None = None,
 ) -> MergedLevels:
     """The levels with the repeated parts of every object grouped at level 2.
 
@@ -133,6 +135,8 @@ def group_repeated_parts(
         part_features: [R_2, D] float features of its level-2 regions (unit or zero rows,
             :func:`thgs.features.region_features` at level 2).
         config: thresholds; ``enabled`` False returns ``merged`` unchanged.
+        neighbors: the [N, config.neighbors] output of
+            :func:`thgs.hierarchy.gaussian_neighbors`, when the caller has it.
 
     Returns:
         :class:`MergedLevels`: levels 0, 1, 3 as given; level 2 with joined regions, numbered in
@@ -153,7 +157,11 @@ def group_repeated_parts(
         raise InputError("part_features", f"must be [R_2, D] with R_2 = {count} level-2 regions")
     if not config.enabled:
         return merged
-    graph = unit_graph(parts, gaussian_neighbors(gaussians, config.neighbors), count)
+    if neighbors is None:
+        neighbors = gaussian_neighbors(gaussians, config.neighbors)
+    elif neighbors.shape != (n, config.neighbors):
+        raise InputError("neighbors", f"must be [N, k] = [{n}, {config.neighbors}]")
+    graph = unit_graph(parts, neighbors, count)
     touching = graph.pairs[graph.hops == 1]
     pairs = repeated_part_pairs(touching, merged.parents[2], part_features, config)
     joined = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(count, count))

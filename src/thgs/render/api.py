@@ -1,96 +1,24 @@
-"""Public rasterization API: render per-Gaussian features into a view, splat pixel maps back."""
+"""Public rasterization API: project, render, splat back and weigh labels, through a backend.
+
+Each function checks its inputs (one camera, tensors of the right shape on the Gaussians' device,
+finite values), resolves ``config.backend`` for the Gaussians' device
+(:func:`thgs.render.backends.resolve_backend`) and returns torch tensors on that device.
+"""
 
 from __future__ import annotations
-
-from dataclasses import dataclass
 
 import numpy as np
 import torch
 from torch import Tensor
 
 from thgs.errors import InputError
-from thgs.render._cpu import label_weights_cpu, render_cpu, splat_back_cpu
+from thgs.render.backends import resolve_backend
 from thgs.render.config import RasterConfig
-from thgs.render.projection import project
+from thgs.render.outputs import LabelWeights, RenderOutput, SplatBackOutput
+from thgs.render.projection import Projection
 from thgs.scene import Cameras, Gaussians
 
-__all__ = [
-    "LabelWeights",
-    "RenderOutput",
-    "SplatBackOutput",
-    "render",
-    "splat_back",
-    "splat_labels",
-]
-
-
-@dataclass(frozen=True, eq=False)
-class RenderOutput:
-    """One rendered view. With ``w_k(x) = α_k(x) · T_k(x)`` the blending weight of Gaussian k.
-
-    Attributes:
-        image: [H, W, C] ``Σ_k w_k(x) · features[k]``, in the features' dtype.
-        alpha: [H, W] accumulated opacity ``Σ_k w_k(x)`` in [0, 1].
-        depth: [H, W] ``Σ_k w_k z_k / Σ_k w_k`` with z_k the camera-space depth of Gaussian k's
-            centre (for 2DGS too, not the ray–surfel intersection); 0 where alpha is 0.
-        max_id: [H, W] int64 index of the Gaussian with the largest ``w_k(x)`` (the nearest on
-            ties), −1 where no Gaussian contributes.
-    """
-
-    image: Tensor
-    alpha: Tensor
-    depth: Tensor
-    max_id: Tensor
-
-
-@dataclass(frozen=True, eq=False)
-class SplatBackOutput:
-    """Per-Gaussian sums of a pixel map over the pixels each Gaussian contributes to.
-
-    Only pixels inside the mask are summed; all pixels still composite (occlusion is unchanged).
-
-    Attributes:
-        feature_sums: [N, C] ``Σ_x w_k(x) · F(x)``.
-        weight_sums: [N] ``Σ_x w_k(x)``.
-        max_weights: [N] ``max_x w_k(x)`` (0 where the Gaussian contributes to no pixel).
-        pixel_counts: [N] int64 number of pixels with ``w_k(x) > 0``.
-        depths: [N] camera-space z of each centre (scene units; ≤ 0 behind the camera).
-        centers: [N, 2] projected centres in pixels (pixel (u, v) is centred at (u+0.5, v+0.5));
-            meaningless where depth ≤ 0.
-    """
-
-    feature_sums: Tensor
-    weight_sums: Tensor
-    max_weights: Tensor
-    pixel_counts: Tensor
-    depths: Tensor
-    centers: Tensor
-
-
-@dataclass(frozen=True, eq=False)
-class LabelWeights:
-    """How much of each Gaussian's blending weight falls on each label of a label map.
-
-    Sparse: one row per (Gaussian, level, label) with a positive weight, sorted by Gaussian, then
-    level, then label.
-
-    Attributes:
-        gaussians: [P] int64 Gaussian index.
-        levels: [P] int64 level (first axis of the label maps).
-        labels: [P] int64 label.
-        weights: [P] float64 ``Σ_{x: label_level(x) = label} w_g(x)``.
-        weight_sums: [N] float64 ``Σ_x w_g(x)`` over all pixels, labelled or not.
-        max_weights: [N] float64 ``max_x w_g(x)``.
-        depths: [N] float64 camera-space z of each centre (scene units).
-    """
-
-    gaussians: np.ndarray
-    levels: np.ndarray
-    labels: np.ndarray
-    weights: np.ndarray
-    weight_sums: np.ndarray
-    max_weights: np.ndarray
-    depths: np.ndarray
+__all__ = ["project", "render", "splat_back", "splat_labels"]
 
 
 def _one_camera(camera: Cameras) -> tuple[int, int]:
@@ -109,6 +37,22 @@ def _check_values(name: str, tensor: Tensor, device: torch.device) -> None:
         raise InputError(name, "has NaN or infinite values")
 
 
+def project(
+    gaussians: Gaussians, camera: Cameras, config: RasterConfig = RasterConfig()
+) -> Projection:
+    """Project ``gaussians`` into one camera (``cameras.select([i])``) with the configured
+    backend, in its compute dtype.
+
+    Returns:
+        a :class:`thgs.render.Projection` on the Gaussians' device; Gaussians that cannot
+        contribute are marked invalid with empty bounds.
+    """
+    _one_camera(camera)
+    gaussians.check()
+    backend, dtype = resolve_backend(config, gaussians.device)
+    return backend.project(gaussians, camera, config, dtype)
+
+
 def render(
     gaussians: Gaussians,
     camera: Cameras,
@@ -123,14 +67,14 @@ def render(
         camera: one camera (``cameras.select([i])``); the image is ``heights[0] × widths[0]``.
         features: [N, C] float values to render (colours, codes, a one-hot selection …), on the
             Gaussians' device.
-        config: rasterization settings.
+        config: rasterization settings and backend.
 
     Returns:
-        a :class:`RenderOutput` on the Gaussians' device.
+        a :class:`RenderOutput` on the Gaussians' device, values in the features' dtype.
 
     Raises:
         InputError: a camera count other than one, an invalid camera, features of the wrong shape,
-            device or with non-finite values.
+            device or with non-finite values, a backend that cannot run on the device.
     """
     _one_camera(camera)
     gaussians.check()
@@ -141,17 +85,8 @@ def render(
     if not features.is_floating_point():
         raise InputError("features", f"must be floating point, got {features.dtype}")
     _check_values("features", features, gaussians.device)
-    projection = project(gaussians, camera, config)
-    image, alpha, depth, max_id = render_cpu(
-        projection, features.detach().cpu().double().numpy(), config
-    )
-    device = gaussians.device
-    return RenderOutput(
-        image=torch.from_numpy(image).to(device=device, dtype=features.dtype),
-        alpha=torch.from_numpy(alpha).to(device=device, dtype=features.dtype),
-        depth=torch.from_numpy(depth).to(device=device, dtype=features.dtype),
-        max_id=torch.from_numpy(max_id).to(device),
-    )
+    backend, dtype = resolve_backend(config, gaussians.device)
+    return backend.render(gaussians, camera, features.detach(), config, dtype)
 
 
 def splat_back(
@@ -172,14 +107,14 @@ def splat_back(
         camera: one camera; ``pixel_map`` must match its size.
         pixel_map: [H, W, C] float values per pixel (row y, column x).
         mask: optional [H, W] bool; pixels outside it add nothing to the sums.
-        config: rasterization settings.
+        config: rasterization settings and backend.
 
     Returns:
         a :class:`SplatBackOutput` on the Gaussians' device, sums in the pixel map's dtype.
 
     Raises:
         InputError: a camera count other than one, an invalid camera, a pixel map or mask of the
-            wrong shape, dtype or device, non-finite values.
+            wrong shape, dtype or device, non-finite values, a backend that cannot run here.
     """
     height, width = _one_camera(camera)
     gaussians.check()
@@ -192,35 +127,21 @@ def splat_back(
     if not pixel_map.is_floating_point():
         raise InputError("pixel_map", f"must be floating point, got {pixel_map.dtype}")
     _check_values("pixel_map", pixel_map, gaussians.device)
-    if mask is None:
-        mask_np = np.ones((height, width), dtype=np.bool_)
-    else:
+    if mask is not None:
         if tuple(mask.shape) != (height, width) or mask.dtype != torch.bool:
             raise InputError(
                 "mask",
                 f"must be a bool [{height}, {width}] tensor, got {mask.dtype} {list(mask.shape)}",
             )
         _check_values("mask", mask, gaussians.device)
-        mask_np = mask.cpu().numpy()
-    projection = project(gaussians, camera, config)
-    feature_sums, weight_sums, max_weights, pixel_counts = splat_back_cpu(
-        projection, pixel_map.detach().cpu().double().numpy(), mask_np, config
-    )
-    device, dtype = gaussians.device, pixel_map.dtype
-    return SplatBackOutput(
-        feature_sums=torch.from_numpy(feature_sums).to(device=device, dtype=dtype),
-        weight_sums=torch.from_numpy(weight_sums).to(device=device, dtype=dtype),
-        max_weights=torch.from_numpy(max_weights).to(device=device, dtype=dtype),
-        pixel_counts=torch.from_numpy(pixel_counts).to(device),
-        depths=projection.depths.to(dtype),
-        centers=projection.centers.to(dtype),
-    )
+    backend, dtype = resolve_backend(config, gaussians.device)
+    return backend.splat_back(gaussians, camera, pixel_map.detach(), mask, config, dtype)
 
 
 def splat_labels(
     gaussians: Gaussians,
     camera: Cameras,
-    label_maps: np.ndarray,
+    label_maps: Tensor | np.ndarray,
     *,
     config: RasterConfig = RasterConfig(),
 ) -> LabelWeights:
@@ -233,36 +154,33 @@ def splat_labels(
     Args:
         gaussians: N Gaussians, world frame.
         camera: one camera; the maps must match its size.
-        label_maps: [L, H, W] integer labels ≥ −1 (−1 = no label) for L levels.
-        config: rasterization settings.
+        label_maps: [L, H, W] integer labels ≥ −1 (−1 = no label) for L levels; a tensor on the
+            Gaussians' device, or a NumPy array (moved there).
+        config: rasterization settings and backend.
+
+    Returns:
+        a :class:`LabelWeights` on the Gaussians' device.
 
     Raises:
-        InputError: a camera count other than one, maps of the wrong shape or type.
+        InputError: a camera count other than one, maps of the wrong shape, type or device, a
+            backend that cannot run here.
     """
     height, width = _one_camera(camera)
     gaussians.check()
-    label_maps = np.asarray(label_maps)
-    if label_maps.ndim != 3 or label_maps.shape[1:] != (height, width):
+    if isinstance(label_maps, np.ndarray):
+        if not np.issubdtype(label_maps.dtype, np.integer):
+            raise InputError("label_maps", f"must be integers ≥ −1, got {label_maps.dtype}")
+        label_maps = torch.from_numpy(label_maps.astype(np.int64)).to(gaussians.device)
+    if label_maps.ndim != 3 or tuple(label_maps.shape[1:]) != (height, width):
         raise InputError(
             "label_maps",
             f"must be [L, {height}, {width}] for this camera, got {list(label_maps.shape)}",
         )
-    if not np.issubdtype(label_maps.dtype, np.integer) or (
-        label_maps.size and label_maps.min() < -1
-    ):
-        raise InputError("label_maps", "must be integers ≥ −1")
-    projection = project(gaussians, camera, config)
-    keys, values, weight_sums, max_weights = label_weights_cpu(projection, label_maps, config)
-    count = max(int(label_maps.max()) + 1, 1) if label_maps.size else 1
-    order = np.argsort(keys, kind="stable")
-    keys, values = keys[order], values[order]
-    levels = label_maps.shape[0]
-    return LabelWeights(
-        gaussians=keys // (count * levels),
-        levels=(keys // count) % levels,
-        labels=keys % count,
-        weights=values,
-        weight_sums=weight_sums,
-        max_weights=max_weights,
-        depths=projection.depths.cpu().double().numpy(),
-    )
+    if label_maps.is_floating_point() or label_maps.dtype == torch.bool:
+        raise InputError("label_maps", f"must be integers ≥ −1, got {label_maps.dtype}")
+    _check_values("label_maps", label_maps, gaussians.device)
+    label_maps = label_maps.long()
+    if label_maps.numel() and int(label_maps.min()) < -1:
+        raise InputError("label_maps", f"must be integers ≥ −1, got {int(label_maps.min())}")
+    backend, dtype = resolve_backend(config, gaussians.device)
+    return backend.label_weights(gaussians, camera, label_maps, config, dtype)

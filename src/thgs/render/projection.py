@@ -1,7 +1,9 @@
 """Per-view projection of Gaussians: what the rasterizer needs to evaluate α at a pixel.
 
-Everything is float64 on the Gaussians' device. Pixel coordinates are continuous, pixel (u, v)
-having its centre at (u + 0.5, v + 0.5) (docs/conventions.md).
+:func:`project_torch` is the projection in PyTorch, on the Gaussians' device in any floating dtype;
+it is tested against gsplat's pure-torch projection, and the numba backend's compiled projection is
+tested against it. Pixel coordinates are continuous, pixel (u, v) having its centre at
+(u + 0.5, v + 0.5) (docs/conventions.md).
 
 α of Gaussian k at pixel centre p, before the cap ``alpha_max``:
 
@@ -26,12 +28,12 @@ from thgs.render.config import RasterConfig
 from thgs.scene import Cameras, Gaussians
 from thgs.scene.gaussians import quaternions_to_matrices
 
-__all__ = ["Projection", "project"]
+__all__ = ["Projection", "project_torch"]
 
 
 @dataclass(frozen=True, eq=False)
 class Projection:
-    """The Gaussians as seen by one camera (float64).
+    """The Gaussians as seen by one camera, in the backend's compute dtype.
 
     Attributes:
         kind: "2dgs" or "3dgs".
@@ -79,29 +81,33 @@ def _union(
     return low, high
 
 
-def project(
-    gaussians: Gaussians, camera: Cameras, config: RasterConfig = RasterConfig()
+def project_torch(
+    gaussians: Gaussians,
+    camera: Cameras,
+    config: RasterConfig = RasterConfig(),
+    dtype: torch.dtype = torch.float64,
 ) -> Projection:
-    """Project ``gaussians`` into the single camera ``camera`` (a :class:`Cameras` of length 1).
+    """Project ``gaussians`` into the single camera ``camera`` (a :class:`Cameras` of length 1),
+    computing in ``dtype`` on the Gaussians' device.
 
     Returns:
         a :class:`Projection`; Gaussians that cannot contribute are marked invalid with empty
         bounds.
     """
     device = gaussians.device
-    viewmat = camera.viewmats[0].to(device)
-    K = camera.Ks[0].to(device)
+    viewmat = camera.viewmats[0].to(device=device, dtype=dtype)
+    K = camera.Ks[0].to(device=device, dtype=dtype)
     width, height = int(camera.widths[0]), int(camera.heights[0])
     rotation, translation = viewmat[:3, :3], viewmat[:3, 3]
-    means = gaussians.means.double() @ rotation.T + translation
+    means = gaussians.means.to(dtype) @ rotation.T + translation
     depths = means[:, 2]
-    opacities = torch.sigmoid(gaussians.opacities.double())
+    opacities = torch.sigmoid(gaussians.opacities.to(dtype))
     in_range = (depths > config.near) & (depths < config.far)
     z = torch.where(in_range, depths, torch.ones_like(depths))
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     centers = torch.stack([fx * means[:, 0] / z + cx, fy * means[:, 1] / z + cy], dim=-1)
-    axes = rotation @ quaternions_to_matrices(gaussians.quats.double())  # local axes, camera frame
-    scales = torch.exp(gaussians.scales.double())
+    axes = rotation @ quaternions_to_matrices(gaussians.quats.to(dtype))  # local axes, camera frame
+    scales = torch.exp(gaussians.scales.to(dtype))
     log_ratio = torch.log(opacities / config.alpha_min)
     visible = log_ratio >= 0
     k_squared = (2 * log_ratio).clamp_min(1e-12)  # α ≥ alpha_min ⟺ Mahalanobis² ≤ k²
@@ -124,7 +130,7 @@ def project(
         det = a * c - b * b
         valid = in_range & visible & (det > 0)
         det = torch.where(valid, det, torch.ones_like(det))
-        params = torch.zeros(len(gaussians), 9, dtype=torch.float64, device=device)
+        params = torch.zeros(len(gaussians), 9, dtype=dtype, device=device)
         params[:, 0], params[:, 1], params[:, 2] = c / det, -b / det, a / det
         alpha_centers = centers
         half_x, half_y = torch.sqrt(k_squared * a), torch.sqrt(k_squared * c)

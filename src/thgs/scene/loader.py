@@ -5,8 +5,10 @@ from __future__ import annotations
 import logging
 import os
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
+
+import torch
 
 from thgs.errors import InputError
 from thgs.scene._json import load_json
@@ -43,6 +45,11 @@ class Scene:
     ply_path: Path
     cameras_path: Path | None
     found: tuple[str, ...]
+
+    def to(self, device: torch.device | str) -> Scene:
+        """The scene with its Gaussians on ``device`` (cameras stay on the CPU in float64:
+        whatever renders moves the one camera it needs)."""
+        return replace(self, gaussians=self.gaussians.to(device))
 
 
 def _model_ply(model_dir: Path, iteration: int | None) -> tuple[Path, int]:

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from thgs.device import resolve_device
 from thgs.errors import ThgsError
 from thgs.field import FIELD_LEVELS
 from thgs.field_scene import open_field_scene
@@ -48,6 +49,7 @@ class ViewerApp:
         config: the viewer's settings.
         scene: the scene to use instead of the one each field records.
         text_model: a local folder with the text model (instead of the Hugging Face cache).
+        device: where the scene's Gaussians are rendered (:func:`thgs.device.resolve_device`).
     """
 
     def __init__(
@@ -57,11 +59,13 @@ class ViewerApp:
         *,
         scene: str | os.PathLike[str] | None = None,
         text_model: str | os.PathLike[str] | None = None,
+        device: str = "auto",
     ):
         self.server = server
         self.config = config.check()
         self.scene_path = scene
         self.text_model = text_model
+        self.device = resolve_device(device)
         self.state: ViewerState | None = None
         self.scene: Scene | None = None
         self.splats: SplatChunks | None = None
@@ -163,7 +167,7 @@ class ViewerApp:
                 it was.
         """
         with self._lock:
-            field, scene = open_field_scene(field_path, self.scene_path)
+            field, scene = open_field_scene(field_path, self.scene_path, device=self.device)
             query, self.text_off = None, None
             try:
                 encoder = load_text_encoder(field.space, model_path=self.text_model)
@@ -443,6 +447,7 @@ def start_viewer(
     port: int = 8080,
     text_model: str | os.PathLike[str] | None = None,
     config: ViewerConfig = ViewerConfig(),
+    device: str = "auto",
 ) -> ViewerApp:
     """Start a viser server on ``host``:``port`` and show ``field`` in it.
 
@@ -458,7 +463,7 @@ def start_viewer(
 
     with contextlib.redirect_stdout(io.StringIO()):  # viser prints a banner; the CLI prints
         server = viser.ViserServer(host=host, port=port, label="thgs", verbose=False)
-    app = ViewerApp(server, config, scene=scene, text_model=text_model)
+    app = ViewerApp(server, config, scene=scene, text_model=text_model, device=device)
     bound = server.get_port()
     if port != 0 and bound != port:
         app.notes.append(f"port {port} is in use; serving on port {bound}")
