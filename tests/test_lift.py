@@ -14,11 +14,11 @@ from thgs.guidance import ViewGuidance
 from thgs.lift import (
     LiftConfig,
     _latent_labels,
+    _latent_labels_torch,
     _present,
     _segments,
     _weighed,
     latent_codes,
-    latent_labels_torch,
     lift_view,
     lift_views,
 )
@@ -223,7 +223,7 @@ def test_compiled_latent_decision_equals_the_full_scan(synthetic_view, code_dim,
     present = _present(segments, count)
     compiled = _latent_labels(weighed, present, 3, count, config)
     codes, background = latent_codes(count, 3, config)
-    scanned = latent_labels_torch(weighed, present, codes, background, config)
+    scanned = _latent_labels_torch(weighed, present, codes, background, config)
     assert torch.equal(compiled, scanned)
     assert bool((compiled >= 0).any())
 

@@ -146,6 +146,17 @@ def test_numba_reuses_prepared_gaussians_until_they_change():
     assert not torch.allclose(after.image, before.image)
 
 
+def test_running_out_of_device_memory_is_an_input_error(monkeypatch):
+    from thgs.render import _numba
+
+    def exhausted(*args, **kwargs):
+        raise torch.OutOfMemoryError("CUDA out of memory. Tried to allocate 2.00 GiB")
+
+    monkeypatch.setattr(_numba.NumbaBackend, "render", exhausted)
+    with pytest.raises(InputError, match=r"cpu: out of memory rasterizing 40 Gaussians at 48×36"):
+        render(tiny_scene("2dgs"), camera(), torch.zeros(40, 1))
+
+
 def test_backend_resolution():
     cpu = torch.device("cpu")
     backend, dtype = resolve_backend(RasterConfig(), cpu)

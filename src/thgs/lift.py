@@ -241,10 +241,10 @@ def _latent_labels(
                 config.cosine_threshold,
             )
         )
-    return latent_labels_torch(weighed, present, codes_np, background_np, config)
+    return _latent_labels_torch(weighed, present, codes_np, background_np, config)
 
 
-def latent_labels_torch(
+def _latent_labels_torch(
     weighed: _Weighed,
     present: Tensor,
     codes_np: np.ndarray,

@@ -439,8 +439,12 @@ def _composite_row(
 
 
 @numba.njit(inline="always")
-def _tile_setup(pairs, first, last, view, y0, rows_in_tile, tile_size):
-    """The tile's local arrays, row lists, and buffers for one row's compositing."""
+def _tile_setup(pairs, first, last, view, tile, tiles_x, tile_size, width, height):
+    """The tile's pixel rows ``y0 …`` and columns ``x0 … x1 − 1``, its local arrays, row lists,
+    and buffers for one row's compositing."""
+    y0, x0 = (tile // tiles_x) * tile_size, (tile % tiles_x) * tile_size
+    rows_in_tile = min(tile_size, height - y0)
+    x1 = min(x0 + tile_size, width)
     m = last - first
     local = _local_arrays(m)
     _gather(pairs, first, last, view, local)
@@ -452,7 +456,8 @@ def _tile_setup(pairs, first, last, view, y0, rows_in_tile, tile_size):
         np.empty(tile_size * m, dtype=np.int64),
         np.empty(tile_size * m),
     )
-    return local, rows, row_counts, out, np.empty(tile_size), np.empty(tile_size, dtype=np.bool_)
+    transmittance, done = np.empty(tile_size), np.empty(tile_size, dtype=np.bool_)
+    return y0, x0, x1, rows_in_tile, local, rows, row_counts, out, transmittance, done
 
 
 @numba.njit(parallel=True, cache=True)
@@ -470,12 +475,8 @@ def _render_kernel(
         first, last = start[tile], start[tile + 1]
         if last == first:
             continue
-        ty, tx = tile // tiles_x, tile % tiles_x
-        y0, x0 = ty * tile_size, tx * tile_size
-        rows_in_tile = min(tile_size, height - y0)
-        x1 = min(x0 + tile_size, width)
-        local, rows, row_counts, out, transmittance, done = _tile_setup(
-            pairs, first, last, view, y0, rows_in_tile, tile_size
+        y0, x0, x1, rows_in_tile, local, rows, row_counts, out, transmittance, done = _tile_setup(
+            pairs, first, last, view, tile, tiles_x, tile_size, width, height
         )
         ids = local[0]
         for r in range(rows_in_tile):
@@ -514,12 +515,8 @@ def _splat_back_kernel(
         m = last - first
         if m == 0:
             continue
-        ty, tx = tile // tiles_x, tile % tiles_x
-        y0, x0 = ty * tile_size, tx * tile_size
-        rows_in_tile = min(tile_size, height - y0)
-        x1 = min(x0 + tile_size, width)
-        local, rows, row_counts, out, transmittance, done = _tile_setup(
-            pairs, first, last, view, y0, rows_in_tile, tile_size
+        y0, x0, x1, rows_in_tile, local, rows, row_counts, out, transmittance, done = _tile_setup(
+            pairs, first, last, view, tile, tiles_x, tile_size, width, height
         )
         sums = np.zeros((m, channels))
         weights = np.zeros(m)
@@ -552,48 +549,56 @@ def _splat_back_kernel(
 
 
 @numba.njit(inline="always")
-def _add_weight(
-    slot, label, weight, firsts, heads, node_label, node_weight, node_next, used
+def _add_tuple_weight(
+    g, slot, weight, slot_labels, firsts, heads, node_label, node_weight, node_next, used
 ):  # pragma: no cover - compiled
-    """Add ``weight`` to the label ``label`` of (Gaussian, level) ``slot``; False when a node is
-    needed and the node arrays are full (the caller grows them and calls again).
+    """Add ``weight`` to Gaussian g's label at every level of the label tuple ``slot``.
 
     Each (Gaussian, level)'s first label and its weight are held inline, side by side, in
-    ``firsts[2·slot]`` and ``firsts[2·slot + 1]`` (a Gaussian's levels share a cache line: one
-    random access, and most (Gaussian, level) have one label in a view); further labels go to
-    linked lists of nodes starting at ``heads[slot]``; ``used[0]`` counts the nodes.
+    ``firsts[2·k]`` and ``firsts[2·k + 1]`` with k = g·levels + level (a Gaussian's levels share a
+    cache line: one random access, and most (Gaussian, level) have one label in a view); further
+    labels go to linked lists of nodes starting at ``heads[k]``; ``used[0]`` counts the nodes, and
+    the caller keeps room for one more per level.
     """
-    at = 2 * slot
-    if firsts[at] == label:
-        firsts[at + 1] += weight
-        return True
-    if firsts[at] < 0:
-        firsts[at] = label
-        firsts[at + 1] = weight
-        return True
-    node = heads[slot]
-    while node >= 0:
-        if node_label[node] == label:
+    levels = slot_labels.shape[1]
+    for level in range(levels):
+        label = slot_labels[slot, level]
+        if label < 0:
+            continue
+        k = g * levels + level
+        if firsts[2 * k] == label:
+            firsts[2 * k + 1] += weight
+            continue
+        if firsts[2 * k] < 0:
+            firsts[2 * k] = label
+            firsts[2 * k + 1] = weight
+            continue
+        node = heads[k]
+        while node >= 0 and node_label[node] != label:
+            node = node_next[node]
+        if node >= 0:
             node_weight[node] += weight
-            return True
-        node = node_next[node]
-    count = used[0]
-    if count == node_label.shape[0]:
-        return False
-    node_label[count] = label
-    node_weight[count] = weight
-    node_next[count] = heads[slot]
-    heads[slot] = count
-    used[0] = count + 1
-    return True
+            continue
+        count = used[0]
+        node_label[count] = label
+        node_weight[count] = weight
+        node_next[count] = heads[k]
+        heads[k] = count
+        used[0] = count + 1
 
 
 @numba.njit(cache=True)
-def _grown(array):  # pragma: no cover - compiled
-    """``array`` copied into one twice as long (plus some)."""
-    out = np.empty(2 * array.shape[0] + 1024, dtype=array.dtype)
-    out[: array.shape[0]] = array
-    return out
+def _grown(node_label, node_weight, node_next):  # pragma: no cover - compiled
+    """The node arrays copied into ones twice as long (plus some)."""
+    used = node_label.shape[0]
+    size = 2 * used + 1024
+    labels = np.empty(size, dtype=np.int64)
+    weights = np.empty(size)
+    links = np.empty(size, dtype=np.int64)
+    labels[:used] = node_label
+    weights[:used] = node_weight
+    links[:used] = node_next
+    return labels, weights, links
 
 
 @numba.njit(nogil=True, cache=True)
@@ -628,12 +633,8 @@ def _label_weights_kernel(
         m = last - first
         if m == 0:
             continue
-        ty, tx = tile // tiles_x, tile % tiles_x
-        y0, x0 = ty * tile_size, tx * tile_size
-        rows_in_tile = min(tile_size, height - y0)
-        x1 = min(x0 + tile_size, width)
-        local, rows, row_counts, out, transmittance, done = _tile_setup(
-            pairs, first, last, view, y0, rows_in_tile, tile_size
+        y0, x0, x1, rows_in_tile, local, rows, row_counts, out, transmittance, done = _tile_setup(
+            pairs, first, last, view, tile, tiles_x, tile_size, width, height
         )
         slots = 0
         for r in range(rows_in_tile):
@@ -671,25 +672,20 @@ def _label_weights_kernel(
                 if not direct:
                     cells[j * slots + slot] += w
                     continue
-                for level in range(levels):
-                    label = slot_labels[slot, level]
-                    if label < 0:
-                        continue
-                    target = local[0][j] * levels + level
-                    while not _add_weight(
-                        target,
-                        label,
-                        w,
-                        firsts,
-                        heads,
-                        node_label,
-                        node_weight,
-                        node_next,
-                        used,
-                    ):
-                        node_label = _grown(node_label)
-                        node_weight = _grown(node_weight)
-                        node_next = _grown(node_next)
+                if used[0] + levels > node_label.shape[0]:
+                    node_label, node_weight, node_next = _grown(node_label, node_weight, node_next)
+                _add_tuple_weight(
+                    local[0][j],
+                    slot,
+                    w,
+                    slot_labels,
+                    firsts,
+                    heads,
+                    node_label,
+                    node_weight,
+                    node_next,
+                    used,
+                )
         for j in range(m):
             if weights[j] == 0.0:
                 continue
@@ -702,24 +698,11 @@ def _label_weights_kernel(
                 w = cells[j * slots + s]
                 if w == 0.0:
                     continue
-                for level in range(levels):
-                    label = slot_labels[s, level]
-                    if label < 0:
-                        continue
-                    while not _add_weight(
-                        g * levels + level,
-                        label,
-                        w,
-                        firsts,
-                        heads,
-                        node_label,
-                        node_weight,
-                        node_next,
-                        used,
-                    ):
-                        node_label = _grown(node_label)
-                        node_weight = _grown(node_weight)
-                        node_next = _grown(node_next)
+                if used[0] + levels > node_label.shape[0]:
+                    node_label, node_weight, node_next = _grown(node_label, node_weight, node_next)
+                _add_tuple_weight(
+                    g, s, w, slot_labels, firsts, heads, node_label, node_weight, node_next, used
+                )
     total = used[0]
     for slot in range(n * levels):
         total += firsts[2 * slot] >= 0

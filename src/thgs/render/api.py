@@ -7,6 +7,8 @@ finite values), resolves ``config.backend`` for the Gaussians' device
 
 from __future__ import annotations
 
+from contextlib import contextmanager
+
 import numpy as np
 import torch
 from torch import Tensor
@@ -37,6 +39,28 @@ def _check_values(name: str, tensor: Tensor, device: torch.device) -> None:
         raise InputError(name, "has NaN or infinite values")
 
 
+@contextmanager
+def _device_memory(device: torch.device, gaussians: Gaussians, height: int, width: int):
+    """An out-of-memory error of the device as an :class:`InputError` that says what ran out."""
+    try:
+        yield
+    except torch.OutOfMemoryError as error:
+        raise InputError(
+            str(device),
+            f"out of memory rasterizing {len(gaussians):,} Gaussians at {width}×{height} "
+            f"({str(error).splitlines()[0]}); free memory on the device, or render on another "
+            "one (--device cpu)",
+        ) from error
+    except RuntimeError as error:  # MPS reports running out of memory as a RuntimeError
+        if "out of memory" not in str(error):
+            raise
+        raise InputError(
+            str(device),
+            f"out of memory rasterizing {len(gaussians):,} Gaussians at {width}×{height}; free "
+            "memory on the device, or render on another one (--device cpu)",
+        ) from error
+
+
 def project(
     gaussians: Gaussians, camera: Cameras, config: RasterConfig = RasterConfig()
 ) -> Projection:
@@ -47,10 +71,11 @@ def project(
         a :class:`thgs.render.Projection` on the Gaussians' device; Gaussians that cannot
         contribute are marked invalid with empty bounds.
     """
-    _one_camera(camera)
+    height, width = _one_camera(camera)
     gaussians.check()
     backend, dtype = resolve_backend(config, gaussians.device)
-    return backend.project(gaussians, camera, config, dtype)
+    with _device_memory(gaussians.device, gaussians, height, width):
+        return backend.project(gaussians, camera, config, dtype)
 
 
 def render(
@@ -74,9 +99,10 @@ def render(
 
     Raises:
         InputError: a camera count other than one, an invalid camera, features of the wrong shape,
-            device or with non-finite values, a backend that cannot run on the device.
+            device or with non-finite values, a backend that cannot run on the device, the
+            device running out of memory.
     """
-    _one_camera(camera)
+    height, width = _one_camera(camera)
     gaussians.check()
     if features.ndim != 2 or features.shape[0] != len(gaussians):
         raise InputError(
@@ -86,7 +112,8 @@ def render(
         raise InputError("features", f"must be floating point, got {features.dtype}")
     _check_values("features", features, gaussians.device)
     backend, dtype = resolve_backend(config, gaussians.device)
-    return backend.render(gaussians, camera, features.detach(), config, dtype)
+    with _device_memory(gaussians.device, gaussians, height, width):
+        return backend.render(gaussians, camera, features.detach(), config, dtype)
 
 
 def splat_back(
@@ -135,7 +162,8 @@ def splat_back(
             )
         _check_values("mask", mask, gaussians.device)
     backend, dtype = resolve_backend(config, gaussians.device)
-    return backend.splat_back(gaussians, camera, pixel_map.detach(), mask, config, dtype)
+    with _device_memory(gaussians.device, gaussians, height, width):
+        return backend.splat_back(gaussians, camera, pixel_map.detach(), mask, config, dtype)
 
 
 def splat_labels(
@@ -183,4 +211,5 @@ def splat_labels(
     if label_maps.numel() and int(label_maps.min()) < -1:
         raise InputError("label_maps", f"must be integers ≥ −1, got {int(label_maps.min())}")
     backend, dtype = resolve_backend(config, gaussians.device)
-    return backend.label_weights(gaussians, camera, label_maps, config, dtype)
+    with _device_memory(gaussians.device, gaussians, height, width):
+        return backend.label_weights(gaussians, camera, label_maps, config, dtype)
