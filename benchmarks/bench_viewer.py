@@ -15,7 +15,10 @@ Actions, medians over ``--repeat``:
 
 - ``open``: the splats: covariances, hierarchy order, packing, queuing every chunk (once);
 - ``query``: a text query whose highlight differs from the last (embedding cached);
-- ``pick``: a click (one pixel rasterized at the viewport's 1200×800) on another object;
+- ``index``: building the scene's pick index (once, when the viewer opens the field);
+- ``pick``: a click through ``ViewerState.pick`` (one pixel at the viewport's 1200×800, only
+  the Gaussians near the clicked ray rasterized) on another object; ``candidates``: how many
+  Gaussians that rasterized, median over the clicks;
 - ``level``: the level selector moving the picked region up one level;
 - ``clear``: back to the scene's colours;
 - ``mask``: the 2D mask of the current view at 480 px tall.
@@ -42,6 +45,7 @@ import torch
 from thgs.demo import run_demo
 from thgs.field import SemanticField, scene_fingerprint
 from thgs.field_scene import open_field_scene
+from thgs.pick_index import PickIndex
 from thgs.query import FieldQuery
 from thgs.scene import Gaussians
 from thgs.text import load_text_encoder
@@ -132,6 +136,9 @@ def bench(field: SemanticField, gaussians: Gaussians, cameras, encoder, repeat: 
         result["query_ms"], result["query_MiB"] = timed(lambda i: state.ask(texts[i % 4]))
         camera = cameras.select([0]).resized([1200], [800])
         pixels = [(600, 400), (400, 500), (800, 300)]
+        result["index_ms"] = _median_ms(lambda i: PickIndex.build(gaussians), max(1, repeat // 2))
+        counts = [len(state.pick_index.candidates(gaussians, camera, p)) for p in pixels]
+        result["candidates"] = int(statistics.median(counts))
         state.set_level(3)
         result["pick_ms"], result["pick_MiB"] = timed(
             lambda i: state.pick(camera, pixels[i % len(pixels)])
@@ -166,13 +173,16 @@ def main() -> None:
         print(json.dumps(row), flush=True)
         rows.append(row)
     print()
-    print("| Gaussians | chunks | open ms | query ms, MiB | pick | level | clear | mask 720×480 |")
-    print("|---|---|---|---|---|---|---|---|")
+    print(
+        "| Gaussians | chunks | open ms | query ms, MiB | pick index | pick (candidates) | level "
+        "| clear | mask 720×480 |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         print(
             f"| {r['gaussians']:,} | {r['chunks']} | {r['open_ms']:.0f} "
-            f"| {r['query_ms']:.0f}, {r['query_MiB']:.1f} "
-            f"| {r['pick_ms']:.0f}, {r['pick_MiB']:.1f} "
+            f"| {r['query_ms']:.0f}, {r['query_MiB']:.1f} | {r['index_ms']:.0f} "
+            f"| {r['pick_ms']:.0f}, {r['pick_MiB']:.1f} ({r['candidates']:,}) "
             f"| {r['level_ms']:.0f}, {r['level_MiB']:.1f} | {r['clear_ms']:.0f}, "
             f"{r['clear_MiB']:.1f} | {r['mask_ms']:.0f} |"
         )

@@ -19,6 +19,7 @@ from thgs.errors import InputError
 from thgs.export import region_colors
 from thgs.field_scene import open_field_scene
 from thgs.query import FieldQuery, QueryConfig
+from thgs.render import render
 from thgs.scene import read_ply
 from thgs.text import load_text_encoder
 from thgs.viewer.camera import camera_pose, click_pixel, viewport_camera, viewport_size
@@ -40,8 +41,6 @@ def state(opened):
 
 def _object_pixel(state, scene):
     """A view and a pixel of it whose max-weight Gaussian is known (from a full render)."""
-    from thgs.render import render
-
     camera = scene.cameras.select([0])
     zeros = torch.zeros(len(scene.gaussians), 1, dtype=torch.float64)
     max_id = render(scene.gaussians, camera, zeros).max_id.numpy()
@@ -187,6 +186,24 @@ def test_pick_then_climb_and_descend_through_the_clicked_point(state, opened):
     with pytest.raises(InputError, match="finest level"):
         state.child()
     np.testing.assert_array_equal(state.highlight.gaussians, field.labels[:, 1] == chain[1])
+
+
+def test_clicks_share_one_pick_index_and_match_the_full_render(state, opened):
+    _, scene, _ = opened
+    camera = scene.cameras.select([1])
+    zeros = torch.zeros(len(scene.gaussians), 1, dtype=torch.float64)
+    max_id = render(scene.gaussians, camera, zeros).max_id.numpy()
+    index = state.pick_index
+    assert len(index) == len(scene.gaussians)
+    rng = np.random.default_rng(0)
+    height, width = max_id.shape
+    for x, y in zip(rng.integers(0, width, 25), rng.integers(0, height, 25)):
+        highlight = state.pick(camera, (int(x), int(y)))
+        if max_id[y, x] < 0:
+            assert highlight is None
+        else:
+            assert highlight.anchor == max_id[y, x]
+    assert state.pick_index is index
 
 
 def test_siblings_cycle_in_id_order_and_children_default_to_the_largest(state, opened):

@@ -7,7 +7,8 @@
 - :func:`relevancy_map` renders each Gaussian's region relevancy the same way (LangSplat-style
   per-pixel relevancy, 0 where no Gaussian is).
 - :func:`pick` is the paper's interactive segmentation: a pixel → the Gaussian of largest blending
-  weight under it → its region at every level. ``SemanticField.parent`` and ``children`` move
+  weight under it → its region at every level. Only the Gaussians near the pixel's ray are
+  rasterized (:class:`thgs.pick_index.PickIndex`). ``SemanticField.parent`` and ``children`` move
   between levels from there.
 
 Pixels are ``(x, y)`` = (column, row) from the top-left corner of the image; pixel (x, y) covers
@@ -23,6 +24,7 @@ import torch
 
 from thgs.errors import InputError
 from thgs.field import SemanticField
+from thgs.pick_index import PickIndex, check_pixel
 from thgs.render import RasterConfig, render
 from thgs.scene import Cameras, Gaussians
 
@@ -150,35 +152,45 @@ def pick(
     pixel: tuple[int, int],
     *,
     config: RasterConfig = RasterConfig(),
+    index: PickIndex | None = None,
 ) -> Pick | None:
     """The Gaussian and regions under ``pixel`` of one view; None where no Gaussian is.
 
-    Only that pixel is rasterized (a 1×1 camera through it), so a pick costs a projection of the
-    Gaussians, not a whole image.
+    Only that pixel is rasterized (a 1×1 camera through it), and only the Gaussians that can
+    reach it (:meth:`thgs.pick_index.PickIndex.candidates`, a conservative superset), so a pick
+    with a prebuilt index costs about the Gaussians near the pixel's ray, not all N. The answer
+    is exactly the ``max_id`` of that pixel rendered from all N Gaussians.
 
     Args:
         field: the semantic field of ``gaussians``.
         gaussians: its N Gaussians.
         camera: one camera (``cameras.select([i])``).
         pixel: ``(x, y)`` integer pixel, inside the image.
+        config: rasterization settings.
+        index: :meth:`PickIndex.build` of ``gaussians``, kept by callers that pick repeatedly
+            (the viewer); None tests every Gaussian against the pixel's ray (O(N), vectorized)
+            before rasterizing the few that pass.
 
     Raises:
-        InputError: a field of another size, or a pixel outside the image.
+        InputError: a field of another size, an index of other Gaussians, several cameras, or a
+            pixel outside the image.
     """
     if len(field) != len(gaussians):
         raise InputError(
             "pick", f"the field has {len(field)} Gaussians, the scene {len(gaussians)}"
         )
-    if len(camera) != 1:
-        raise InputError("pick", f"expected one camera, got {len(camera)}")
-    x, y = (int(v) for v in pixel)
-    width, height = int(camera.widths[0]), int(camera.heights[0])
-    if not (0 <= x < width and 0 <= y < height):
-        raise InputError(camera.stems[0], f"pixel ({x}, {y}) is outside the {width}×{height} image")
-    zeros = torch.zeros(len(gaussians), 1, dtype=torch.float64, device=gaussians.device)
-    out = render(gaussians, _pixel_camera(camera, x, y), zeros, config=config)
-    gaussian = int(out.max_id[0, 0])
-    if gaussian < 0:
+    x, y = check_pixel(camera, pixel)
+    if index is None:
+        index = PickIndex.build(gaussians, cell_size=max(len(gaussians), 1))
+    candidates = index.candidates(gaussians, camera, (x, y), config=config)
+    if candidates.size == 0:
         return None
+    near = gaussians.select(torch.from_numpy(candidates).to(gaussians.device))
+    zeros = torch.zeros(len(near), 1, dtype=torch.float64, device=gaussians.device)
+    out = render(near, _pixel_camera(camera, x, y), zeros, config=config)
+    local = int(out.max_id[0, 0])
+    if local < 0:
+        return None
+    gaussian = int(candidates[local])
     regions = tuple(int(v) for v in field.labels[gaussian])
     return Pick(camera.stems[0], (x, y), gaussian, regions)  # type: ignore[arg-type]

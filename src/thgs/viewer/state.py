@@ -2,9 +2,9 @@
 
 :class:`ViewerState` holds one semantic field with its scene and the current *highlight*: the
 regions a text query selected, or the region a click picked. It answers everything the GUI asks
-through the library's public API (:class:`thgs.query.FieldQuery`, :func:`thgs.views.pick`,
-:func:`thgs.render.render`, :func:`thgs.export.write_selection`) and never touches viser, so it
-is unit-tested on its own.
+through the library's public API (:class:`thgs.query.FieldQuery`, :func:`thgs.views.pick` with
+the scene's :class:`thgs.pick_index.PickIndex`, :func:`thgs.render.render`,
+:func:`thgs.export.write_selection`) and never touches viser, so it is unit-tested on its own.
 
 Levels are the field's: 1 sub-parts, 2 parts, 3 objects (0, superpoints, is not shown). A
 highlight has a *primary* region (its most relevant, or the picked one) from which
@@ -32,6 +32,7 @@ import torch
 from thgs.errors import InputError
 from thgs.export import region_colors, slug, write_selection
 from thgs.field import FIELD_LEVELS, SemanticField
+from thgs.pick_index import PickIndex
 from thgs.query import FieldQuery, QueryConfig
 from thgs.render import render
 from thgs.scene import Cameras, Gaussians
@@ -186,6 +187,10 @@ class ViewMask:
 class ViewerState:
     """One field and its scene, and what the viewer currently highlights.
 
+    The scene's :class:`PickIndex` (``pick_index``) is built here, once, so that every click
+    rasterizes only the Gaussians near the clicked ray (about 0.35 s per million Gaussians on
+    2 CPU cores, docs/viewer.md).
+
     Args:
         field: the semantic field.
         gaussians: the N Gaussians it was built on.
@@ -220,6 +225,7 @@ class ViewerState:
         self.last_text: str | None = None
         self._scene_rgb = gaussians.dc_colors().detach().cpu().numpy().astype(np.float32)
         self._opacity = gaussians.activated_opacities().detach().cpu().numpy().astype(np.float32)
+        self.pick_index = PickIndex.build(gaussians)
 
     def __len__(self) -> int:
         return len(self.field)
@@ -278,7 +284,7 @@ class ViewerState:
         Returns:
             the new highlight, or None (and the highlight unchanged) where no Gaussian is.
         """
-        picked = pick(self.field, self.gaussians, camera, pixel)
+        picked = pick(self.field, self.gaussians, camera, pixel, index=self.pick_index)
         if picked is None:
             return None
         return self._select_region(self.level, picked.region(self.level), picked.gaussian)
