@@ -125,21 +125,21 @@ class SemanticField:
 
     def sizes(self, level: int) -> np.ndarray:
         """[R_level] int64: the number of Gaussians in each region of ``level`` (0..3)."""
-        level = self._level(level, range(4))
+        level = self.checked_level(level, range(4))
         return np.bincount(self.labels[:, level], minlength=self.region_counts[level]).astype(
             np.int64
         )
 
     def parent(self, level: int, region: int) -> int:
         """The level + 1 region that contains ``region`` of ``level`` (0..2)."""
-        level = self._level(level, range(3))
-        region = self._region(level, region)
+        level = self.checked_level(level, range(3))
+        region = self.checked_region(level, region)
         return int(self.parents[level][region])
 
     def children(self, level: int, region: int) -> np.ndarray:
         """[C] int32, sorted: the level − 1 regions inside ``region`` of ``level`` (1..3)."""
-        level = self._level(level, range(1, 4))
-        region = self._region(level, region)
+        level = self.checked_level(level, range(1, 4))
+        region = self.checked_region(level, region)
         return np.flatnonzero(self.parents[level - 1] == region).astype(np.int32)
 
     def members(self, level: int, region: int) -> np.ndarray:
@@ -148,11 +148,17 @@ class SemanticField:
         Scans all N labels; to list every region's members at once, group
         ``np.argsort(labels[:, level], kind="stable")`` instead.
         """
-        level = self._level(level, range(4))
-        region = self._region(level, region)
+        level = self.checked_level(level, range(4))
+        region = self.checked_region(level, region)
         return np.flatnonzero(self.labels[:, level] == region).astype(np.int64)
 
-    def _level(self, level: int, allowed: range) -> int:
+    def checked_level(self, level: int, allowed: range = range(4)) -> int:
+        """``level`` as an int after checking that it is an integer in ``allowed``.
+
+        Raises:
+            InputError: not an integer, or outside ``allowed`` (e.g. ``range(1, 4)`` for the
+                levels with features).
+        """
         if isinstance(level, bool) or not isinstance(level, (int, np.integer)):
             raise InputError("SemanticField", f"level must be an integer, got {level!r}")
         if int(level) not in allowed:
@@ -162,7 +168,12 @@ class SemanticField:
             )
         return int(level)
 
-    def _region(self, level: int, region: int) -> int:
+    def checked_region(self, level: int, region: int) -> int:
+        """``region`` as an int after checking that it is a region id of ``level``.
+
+        Raises:
+            InputError: not an integer, or not in 0..R_level − 1.
+        """
         if isinstance(region, bool) or not isinstance(region, (int, np.integer)):
             raise InputError("SemanticField", f"region must be an integer, got {region!r}")
         count = self.region_counts[level]

@@ -318,7 +318,7 @@ class FieldQuery:
 
     def relevancy(self, texts: Sequence[str], level: int, temperature: float = 10.0) -> np.ndarray:
         """[Q, R_level] relevancy of every level-``level`` region (1..3) for every text."""
-        level = self.field._level(level, range(1, 4))
+        level = self.field.checked_level(level, range(1, 4))
         return relevancy(
             self.field.features[level - 1],
             self.embed(texts),
@@ -337,8 +337,8 @@ class FieldQuery:
         """[N] bool: the members of the ``(level, region)`` pairs (levels 1..3)."""
         mask = np.zeros(len(self.field), dtype=bool)
         for level, region in regions:
-            level = self.field._level(level, range(1, 4))
-            self._members[level].mark(mask, self.field._region(level, region))
+            level = self.field.checked_level(level, range(1, 4))
+            self._members[level].mark(mask, self.field.checked_region(level, region))
         return mask
 
     def select(self, texts: Sequence[str], config: QueryConfig | None = None) -> list[Selection]:

@@ -122,9 +122,9 @@ def evaluate_mean(
         reports: one thgs eval JSON report per scene.
         out: also write the means as JSON.
     """
+    from thgs._json import load_json
     from thgs.eval.dataset import mean_over_scenes
     from thgs.export import write_json
-    from thgs.scene._json import load_json
 
     if not reports:
         raise InputError("thgs eval-mean", "give one report per scene")

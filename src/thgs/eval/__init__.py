@@ -7,6 +7,7 @@ from thgs.eval.dataset import (
     GroundTruth,
     evaluate_dataset,
     find_ground_truth,
+    mean_over_scenes,
 )
 from thgs.eval.evaluate import (
     ProtocolResult,

@@ -31,9 +31,9 @@ from pathlib import Path
 import numpy as np
 
 from thgs._atomic import atomic_output
+from thgs._json import get_number, load_json
 from thgs.errors import InputError
 from thgs.eval.polygons import rasterize_polygon
-from thgs.scene._json import get_number, load_json
 
 __all__ = ["FrameLabels", "LabelledObject", "read_lerf_labels", "write_lerf_labels"]
 

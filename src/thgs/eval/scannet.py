@@ -55,8 +55,8 @@ import numpy as np
 import plyfile
 
 from thgs._atomic import atomic_output
+from thgs._json import load_json
 from thgs.errors import InputError
-from thgs.scene._json import load_json
 from thgs.scene.ply import read_ply_data
 
 __all__ = [

@@ -32,18 +32,15 @@ Views are kept by folder name, classes in ``classes.txt`` order (not sorted).
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import os
-import shutil
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from PIL import Image, UnidentifiedImageError
 
-from thgs._atomic import _current_umask
+from thgs._atomic import atomic_folder
 from thgs.errors import InputError
 
 __all__ = [
@@ -231,9 +228,7 @@ def write_3dovs_segmentations(
     segmentations.check(source=f"segmentations to write to {folder}")
     if folder.exists() and (not folder.is_dir() or any(folder.iterdir())):
         raise InputError(folder, "already exists and is not an empty folder; refusing to overwrite")
-    folder.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", suffix=".tmp", dir=folder.parent))
-    try:
+    with atomic_folder(folder) as tmp:
         (tmp / _CLASSES_FILE).write_text(
             "".join(f"{name}\n" for name in segmentations.classes), encoding="utf-8"
         )
@@ -241,12 +236,3 @@ def write_3dovs_segmentations(
             (tmp / view).mkdir()
             for class_name, mask in masks.items():
                 _write_png(tmp / view / f"{class_name}.png", mask)
-        os.chmod(tmp, 0o777 & ~_current_umask())
-        try:
-            os.replace(tmp, folder)
-        except OSError as exc:  # created (and filled) by someone else meanwhile
-            raise InputError(folder, f"could not move the new folder into place ({exc})") from exc
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            shutil.rmtree(tmp)
-        raise

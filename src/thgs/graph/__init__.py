@@ -6,7 +6,7 @@ distances = reweight(graph, pos, neg, ReweightConfig())
 superpoints = partition(gaussians, graph, distances, PartitionConfig.lerf())
 """
 
-from thgs.graph.knn import GraphConfig, KnnGraph, knn_graph, search_points
+from thgs.graph.knn import GraphConfig, KnnGraph, knn_graph, nearest_neighbors, search_points
 from thgs.graph.partition import PartitionConfig, partition
 from thgs.graph.reweight import ReweightConfig, ReweightMode, edge_counts, reweight
 
@@ -18,6 +18,7 @@ __all__ = [
     "ReweightMode",
     "edge_counts",
     "knn_graph",
+    "nearest_neighbors",
     "partition",
     "reweight",
     "search_points",

@@ -23,7 +23,7 @@ try:
 except ImportError:  # pykdtree is a dependency; scipy serves where it cannot be installed
     _PyKDTree = None
 
-__all__ = ["GraphConfig", "KnnGraph", "knn_graph", "search_points"]
+__all__ = ["GraphConfig", "KnnGraph", "knn_graph", "nearest_neighbors", "search_points"]
 
 log = logging.getLogger(__name__)
 
@@ -125,12 +125,23 @@ def search_points(gaussians: Gaussians, config: GraphConfig = GraphConfig()) -> 
     return np.concatenate([means, config.color_weight * colors], axis=1).astype(np.float32)
 
 
-def _query(
+def nearest_neighbors(
     points: np.ndarray, k: int, radius: float, queries: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Squared distances [M, k] and indices [M, k] of the k nearest ``points`` [N, D] closer than
-    ``radius`` to each of ``queries`` [M, D] (default: the points themselves, each then among its
-    own neighbours); missing entries have index N and distance inf."""
+    """The k nearest ``points`` closer than ``radius`` to each query, by a KD-tree (pykdtree,
+    else scipy).
+
+    Args:
+        points: [N, D] points (any units; distances are Euclidean in them).
+        k: neighbours per query.
+        radius: the largest distance searched (``np.inf`` for none), in the points' units.
+        queries: [M, D] query points; default the points themselves, each then among its own
+            neighbours.
+
+    Returns:
+        squared distances [M, k] and int64 indices [M, k], nearest first; missing entries have
+        index N and distance inf.
+    """
     queries = points if queries is None else queries
     m = queries.shape[0]
     bound = None if np.isinf(radius) else radius
@@ -165,7 +176,7 @@ def knn_graph(gaussians: Gaussians, config: GraphConfig = GraphConfig()) -> KnnG
     queried = min(k + 1, n)
     if queried < 2:
         return KnnGraph(neighbors, distances)
-    squared, index = _query(search_points(gaussians, config), queried, config.radius)
+    squared, index = nearest_neighbors(search_points(gaussians, config), queried, config.radius)
     # Drop exactly one entry per row: the point itself, or (when more than k + 1 points coincide
     # and the tree returned others before it) the farthest entry.
     is_self = index == np.arange(n)[:, None]

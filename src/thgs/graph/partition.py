@@ -22,7 +22,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from thgs.errors import InputError, ThgsError
-from thgs.graph.knn import KnnGraph, _query
+from thgs.graph.knn import KnnGraph, nearest_neighbors
 from thgs.scene.gaussians import Gaussians
 
 __all__ = ["PartitionConfig", "partition"]
@@ -172,7 +172,7 @@ def _edge_weights(
     isolated = np.flatnonzero(degree == 0)
     if isolated.size and n > 1:
         log.info("joining %d isolated Gaussians to their nearest neighbour", isolated.size)
-        near_squared, near = _query(means, 2, np.inf, queries=means[isolated])
+        near_squared, near = nearest_neighbors(means, 2, np.inf, queries=means[isolated])
         first_is_self = near[:, 0] == isolated
         neighbors[isolated, 0] = np.where(first_is_self, near[:, 1], near[:, 0])
         squared[isolated, 0] = np.where(first_is_self, near_squared[:, 1], near_squared[:, 0])

@@ -25,9 +25,9 @@ from pathlib import Path
 import numpy as np
 
 from thgs._atomic import atomic_output
+from thgs._json import load_json
 from thgs.errors import InputError
 from thgs.scene import Cameras
-from thgs.scene._json import load_json
 
 __all__ = [
     "EMBEDDING_FILE",

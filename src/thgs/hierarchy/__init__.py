@@ -8,7 +8,13 @@ merged = group_repeated_parts(gaussians, merged, part_features)   # a table's le
 
 from thgs.hierarchy.adjacency import UnitGraph, coarsened_graph, gaussian_neighbors, unit_graph
 from thgs.hierarchy.affinity import MaskEvidence, Source, mask_evidence, pair_affinity
-from thgs.hierarchy.merge import MergeConfig, MergedLevels, merge_levels, parents_of
+from thgs.hierarchy.merge import (
+    MergeConfig,
+    MergedLevels,
+    merge_levels,
+    parents_of,
+    renumber_by_units,
+)
 from thgs.hierarchy.repeats import RepeatConfig, group_repeated_parts, repeated_part_pairs
 
 __all__ = [
@@ -25,6 +31,7 @@ __all__ = [
     "merge_levels",
     "pair_affinity",
     "parents_of",
+    "renumber_by_units",
     "repeated_part_pairs",
     "unit_graph",
 ]

@@ -14,7 +14,7 @@ import numpy as np
 from scipy.sparse import coo_matrix, csr_matrix
 
 from thgs.errors import InputError
-from thgs.graph.knn import _query
+from thgs.graph.knn import nearest_neighbors
 from thgs.scene.gaussians import Gaussians
 
 __all__ = ["UnitGraph", "coarsened_graph", "gaussian_neighbors", "unit_graph"]
@@ -31,7 +31,7 @@ def gaussian_neighbors(gaussians: Gaussians, k: int = 8) -> np.ndarray:
     means = gaussians.means.detach().cpu().numpy().astype(np.float32)
     if n == 0:
         return np.zeros((0, k), dtype=np.int64)
-    _, index = _query(means, min(k, n), np.inf)
+    _, index = nearest_neighbors(means, min(k, n), np.inf)
     if index.shape[1] < k:
         own = np.repeat(np.arange(n)[:, None], k - index.shape[1], axis=1)
         index = np.concatenate([index, own], axis=1)

@@ -47,7 +47,7 @@ from thgs.hierarchy.affinity import MaskEvidence, Source, mask_evidence, pair_af
 from thgs.lift import ViewLift
 from thgs.scene.gaussians import Gaussians
 
-__all__ = ["MergeConfig", "MergedLevels", "merge_levels", "parents_of"]
+__all__ = ["MergeConfig", "MergedLevels", "merge_levels", "parents_of", "renumber_by_units"]
 
 log = logging.getLogger(__name__)
 
@@ -273,7 +273,7 @@ def _merge_pass(
         grown = _grow_round(graph, evidence, threshold, config)  # per current region
         regions = int(grown.max()) + 1
         merged = regions < graph.units
-        renumbered = _renumber_by_units(grown[region_of_unit], np.arange(count)).astype(np.int64)
+        renumbered = renumber_by_units(grown[region_of_unit], np.arange(count)).astype(np.int64)
         new_of_current = np.zeros(graph.units, dtype=np.int64)
         new_of_current[region_of_unit] = renumbered
         region_of_unit = renumbered
@@ -327,8 +327,16 @@ def _absorb(
     return target[regions]
 
 
-def _renumber_by_units(regions: np.ndarray, units: np.ndarray) -> np.ndarray:
-    """[N] int32 region ids numbered in order of their smallest unit id (the growing order)."""
+def renumber_by_units(regions: np.ndarray, units: np.ndarray) -> np.ndarray:
+    """Region ids renumbered 0 … R − 1 in order of their smallest unit id (the growing order).
+
+    Args:
+        regions: [N] region id (0 … R − 1, every id used) of each Gaussian.
+        units: [N] the unit (superpoint or lower-level region) id of each Gaussian.
+
+    Returns:
+        [N] int32 renumbered region ids.
+    """
     count = int(regions.max()) + 1
     first_unit = np.full(count, np.iinfo(np.int64).max)
     np.minimum.at(first_unit, regions, units)
@@ -425,7 +433,7 @@ def merge_levels(
             config,
             device,
         )
-        regions = _renumber_by_units(absorbed, last_units)
+        regions = renumber_by_units(absorbed, last_units)
         levels[3] = regions
         if config.mode == "instance":
             levels[1] = levels[2] = regions

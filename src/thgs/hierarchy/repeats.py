@@ -31,7 +31,7 @@ from scipy.sparse.csgraph import connected_components
 
 from thgs.errors import InputError
 from thgs.hierarchy.adjacency import gaussian_neighbors, unit_graph
-from thgs.hierarchy.merge import MergedLevels, _renumber_by_units, parents_of
+from thgs.hierarchy.merge import MergedLevels, parents_of, renumber_by_units
 from thgs.scene.gaussians import Gaussians
 
 __all__ = ["RepeatConfig", "group_repeated_parts", "repeated_part_pairs"]
@@ -167,6 +167,6 @@ def group_repeated_parts(
     joined = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(count, count))
     groups, group = connected_components(joined, directed=False)
     out = labels.copy()
-    out[:, 2] = _renumber_by_units(group[parts], labels[:, 1])
+    out[:, 2] = renumber_by_units(group[parts], labels[:, 1])
     log.info("repeated parts: %d level-2 regions grouped into %d", count, groups)
     return MergedLevels(labels=out, parents=parents_of(out), seconds=merged.seconds)

@@ -20,8 +20,8 @@ from pathlib import Path
 import numpy as np
 
 from thgs._atomic import atomic_output
+from thgs._json import get_matrix, get_number, load_json
 from thgs.errors import InputError
-from thgs.scene._json import get_matrix, get_number, load_json
 from thgs.scene.cameras import Cameras, viewmat_from_pose
 
 __all__ = ["read_cameras_json", "write_cameras_json"]

@@ -10,12 +10,11 @@ from __future__ import annotations
 
 import logging
 import os
-import shutil
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from thgs._atomic import staging_folder
 from thgs.errors import InputError
 from thgs.scene.cameras import Cameras
 from thgs.scene.images import fit_to_images
@@ -148,13 +147,10 @@ def write_colmap(
         pose = pycolmap.Rigid3d(cameras.viewmats[i, :3, :].numpy())
         reconstruction.add_image_with_trivial_frame(image, pose)
     sparse_dir.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=".colmap-", dir=sparse_dir.parent))
-    try:
+    with staging_folder(sparse_dir) as staging:
         if text:
             reconstruction.write_text(str(staging))
         else:
             reconstruction.write_binary(str(staging))
         for file in sorted(staging.iterdir()):
             os.replace(file, sparse_dir / file.name)
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)

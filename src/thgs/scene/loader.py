@@ -10,8 +10,8 @@ from pathlib import Path
 
 import torch
 
+from thgs._json import load_json
 from thgs.errors import InputError
-from thgs.scene._json import load_json
 from thgs.scene.cameras import Cameras
 from thgs.scene.cameras_json import read_cameras_json
 from thgs.scene.colmap import read_colmap

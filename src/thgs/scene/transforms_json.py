@@ -27,8 +27,8 @@ import numpy as np
 from PIL import Image, UnidentifiedImageError
 
 from thgs._atomic import atomic_output
+from thgs._json import get_matrix, get_number, load_json
 from thgs.errors import InputError
-from thgs.scene._json import get_matrix, get_number, load_json
 from thgs.scene.cameras import Cameras, viewmat_from_pose
 from thgs.scene.images import image_candidates
 

@@ -25,8 +25,6 @@ from __future__ import annotations
 import json
 import logging
 import os
-import shutil
-import tempfile
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -35,6 +33,7 @@ import numpy as np
 import torch
 from PIL import Image
 
+from thgs._atomic import atomic_folder
 from thgs.errors import InputError
 from thgs.eval.ground_truth import HIERARCHY_LEVELS, write_hierarchy
 from thgs.eval.lerf_ovs import FrameLabels, LabelledObject, write_lerf_labels
@@ -207,16 +206,8 @@ def write_dataset(
         raise InputError(out, "exists and is not a folder")
     if out.is_dir() and any(out.iterdir()) and not overwrite:
         raise InputError(out, "already exists and is not empty (pass overwrite to replace it)")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
-    try:
+    with atomic_folder(out, replace=True) as staging:
         summary = _write(staging, scene, encoder, oracle, config, progress)
-        if out.exists():
-            shutil.rmtree(out)
-        os.replace(staging, out)
-    except BaseException:
-        shutil.rmtree(staging, ignore_errors=True)
-        raise
     summary = replace(summary, path=out)
     logger.info("wrote %s (%.1f MB)", out, summary.bytes / 1e6)
     return summary

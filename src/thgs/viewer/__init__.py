@@ -10,3 +10,5 @@
 
 See docs/viewer.md.
 """
+
+__all__: list[str] = []

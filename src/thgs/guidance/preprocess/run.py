@@ -30,6 +30,7 @@ import torch
 from PIL import Image, UnidentifiedImageError
 
 from thgs._atomic import atomic_output
+from thgs._json import load_json
 from thgs.errors import InputError
 from thgs.guidance.langsplat import (
     LEVELS,
@@ -42,7 +43,6 @@ from thgs.guidance.preprocess.clip_features import CLIPImageEncoder, mask_featur
 from thgs.guidance.preprocess.generator import MaskGeneratorConfig, generate_masks, segment_map
 from thgs.guidance.preprocess.sam import PointSegmenter
 from thgs.scene import Cameras, find_images
-from thgs.scene._json import load_json
 
 __all__ = [
     "MANIFEST_FILE",

@@ -1,4 +1,4 @@
-"""Shared helpers for the JSON camera formats."""
+"""JSON reading with errors that name the file and the key: camera formats, labels, guidance."""
 
 from __future__ import annotations
 

@@ -1,0 +1,139 @@
+"""The atomic writers: results appear whole or not at all, with the permissions of a plainly
+created file or folder, and the process's umask is never touched."""
+
+from __future__ import annotations
+
+import os
+import stat
+import threading
+
+import pytest
+
+from thgs._atomic import atomic_folder, atomic_output, staging_folder
+from thgs.errors import InputError
+
+
+@pytest.fixture(autouse=True)
+def no_umask_calls(monkeypatch):
+    """os.umask sets the mask process-wide even to read it: the writers must never call it."""
+
+    def forbidden(mask):
+        raise AssertionError("os.umask called")
+
+    monkeypatch.setattr(os, "umask", forbidden)
+
+
+def mode(path) -> int:
+    return stat.S_IMODE(os.stat(path).st_mode)
+
+
+def hidden(folder) -> list[str]:
+    return sorted(name for name in os.listdir(folder) if name.startswith("."))
+
+
+def test_file_is_written_whole_with_plain_permissions(tmp_path):
+    plain = tmp_path / "plain.txt"
+    plain.write_text("x")
+    with atomic_output(tmp_path / "sub" / "out.txt", "w") as handle:
+        handle.write("hello")
+        assert not (tmp_path / "sub" / "out.txt").exists()
+    assert (tmp_path / "sub" / "out.txt").read_text() == "hello"
+    assert mode(tmp_path / "sub" / "out.txt") == mode(plain)
+    assert hidden(tmp_path / "sub") == []
+
+
+@pytest.mark.parametrize("error", [RuntimeError, KeyboardInterrupt])
+def test_file_failure_keeps_the_old_content(tmp_path, error):
+    target = tmp_path / "out.bin"
+    target.write_bytes(b"old")
+    with pytest.raises(error), atomic_output(target) as handle:
+        handle.write(b"new, half")
+        raise error
+    assert target.read_bytes() == b"old"
+    assert hidden(tmp_path) == []
+
+
+def test_folder_is_moved_in_whole_with_plain_permissions(tmp_path):
+    plain = tmp_path / "plain"
+    plain.mkdir()
+    target = tmp_path / "out"
+    with atomic_folder(target) as folder:
+        (folder / "a.txt").write_text("a")
+        assert not target.exists()
+    assert (target / "a.txt").read_text() == "a"
+    assert mode(target) == mode(plain)
+    assert hidden(tmp_path) == []
+
+
+def test_folder_onto_an_empty_folder(tmp_path):
+    (tmp_path / "out").mkdir()
+    with atomic_folder(tmp_path / "out") as folder:
+        (folder / "a.txt").write_text("a")
+    assert os.listdir(tmp_path / "out") == ["a.txt"]
+
+
+def test_folder_failure_leaves_nothing(tmp_path):
+    with pytest.raises(KeyboardInterrupt), atomic_folder(tmp_path / "out") as folder:
+        (folder / "a.txt").write_text("a")
+        raise KeyboardInterrupt
+    assert os.listdir(tmp_path) == []
+
+
+def test_folder_refuses_a_filled_target_and_cleans_up(tmp_path):
+    target = tmp_path / "out"
+    target.mkdir()
+    (target / "theirs.txt").write_text("theirs")
+    with pytest.raises(InputError, match="could not move the new folder"):
+        with atomic_folder(target) as folder:
+            (folder / "mine.txt").write_text("mine")
+    assert os.listdir(target) == ["theirs.txt"]
+    assert hidden(tmp_path) == []
+
+
+def test_folder_replace_swaps_the_whole_folder(tmp_path):
+    target = tmp_path / "out"
+    target.mkdir()
+    (target / "old.txt").write_text("old")
+    with atomic_folder(target, replace=True) as folder:
+        (folder / "new.txt").write_text("new")
+        assert (target / "old.txt").exists()  # the old one stays until the new one is whole
+    assert os.listdir(target) == ["new.txt"]
+    assert hidden(tmp_path) == []
+
+
+def test_folder_replace_failure_keeps_the_old_folder(tmp_path):
+    target = tmp_path / "out"
+    target.mkdir()
+    (target / "old.txt").write_text("old")
+    with pytest.raises(RuntimeError), atomic_folder(target, replace=True) as folder:
+        (folder / "new.txt").write_text("new")
+        raise RuntimeError
+    assert os.listdir(target) == ["old.txt"]
+    assert hidden(tmp_path) == []
+
+
+def test_staging_folder_is_always_removed(tmp_path):
+    with staging_folder(tmp_path / "x") as folder:
+        (folder / "f").write_text("f")
+        kept = folder
+    assert not kept.exists()
+    with pytest.raises(ValueError), staging_folder(tmp_path / "x") as folder:
+        raise ValueError
+    assert os.listdir(tmp_path) == []
+
+
+def test_concurrent_writers_to_one_target(tmp_path):
+    target = tmp_path / "out.txt"
+
+    def write(i):
+        with atomic_output(target, "w") as handle:
+            handle.write(str(i) * 1000)
+
+    threads = [threading.Thread(target=write, args=(i,)) for i in range(8)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    content = target.read_text()
+    assert len(content) == 1000 and len(set(content)) == 1
+    assert hidden(tmp_path) == []
