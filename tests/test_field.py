@@ -341,7 +341,7 @@ def test_round_trip_is_exact(tmp_path):
     assert loaded.space == field.space
     assert loaded.fingerprint == field.fingerprint
     assert loaded.config == field.config
-    assert list(loaded.timings.items()) == list(field.timings.items())
+    assert field.timings and loaded.timings == {}  # timings are not written (version 2)
     assert loaded.region_counts == field.region_counts
 
 
@@ -366,11 +366,10 @@ def test_file_layout_is_the_documented_one(tmp_path):
     np.testing.assert_array_equal(tensors["seen_1"], [1, 1, 0])
     assert header == {
         "format": "thgs.semantic_field",
-        "version": 1,
+        "version": 2,
         "space": "sentence-transformers/all-MiniLM-L6-v2",
         "fingerprint": FINGERPRINT,
         "config": {"partition": {"levels": ["s", "m", "l"], "regularization": 0.1}, "seed": 0},
-        "timings": [["lift", 1.5], ["knn", 0.25], ["partition", 3.0], ["merge", 0.125]],
         "gaussians": 6,
         "region_counts": [4, 3, 2, 1],
     }
@@ -462,7 +461,6 @@ def _raw_field(**changes) -> tuple[dict[str, np.ndarray], dict]:
         "space": field.space,
         "fingerprint": field.fingerprint,
         "config": field.config,
-        "timings": [[stage, seconds] for stage, seconds in field.timings.items()],
         "gaussians": 6,
         "region_counts": [4, 3, 2, 1],
     }
@@ -478,6 +476,20 @@ def test_raw_writer_matches_save_field(tmp_path):
     assert (tmp_path / "raw.safetensors").read_bytes() == saved
 
 
+def test_version_1_files_are_read_with_their_timings(tmp_path):
+    timings = [["lift", 1.5], ["knn", 0.25], ["partition", 3.0], ["merge", 0.125]]
+    write_raw(tmp_path / "v1.safetensors", *_raw_field(version=1, timings=timings))
+    loaded = load_field(tmp_path / "v1.safetensors")
+    assert list(loaded.timings.items()) == [tuple(pair) for pair in timings]
+    np.testing.assert_array_equal(loaded.labels, mug_field().labels)
+
+
+def test_timings_do_not_change_the_bytes(tmp_path):
+    save_field(tmp_path / "a.thgs", mug_field())
+    save_field(tmp_path / "b.thgs", dataclasses.replace(mug_field(), timings={"lift": 99.0}))
+    assert (tmp_path / "a.thgs").read_bytes() == (tmp_path / "b.thgs").read_bytes()
+
+
 def _drop(tensors: dict, name: str) -> dict:
     return {key: value for key, value in tensors.items() if key != name}
 
@@ -488,8 +500,8 @@ def _retype(tensors: dict, name: str, dtype: type) -> dict:
 
 TAMPERED = {
     "newer version": (
-        lambda t, h: (t, {**h, "version": 2}),
-        "written by a newer thgs (version 2), this one reads 1",
+        lambda t, h: (t, {**h, "version": 3}),
+        "written by a newer thgs (version 3), this one reads 2",
     ),
     "version zero": (lambda t, h: (t, {**h, "version": 0}), "invalid format version 0"),
     "version as text": (lambda t, h: (t, {**h, "version": "1"}), "invalid format version '1'"),
@@ -498,20 +510,24 @@ TAMPERED = {
         lambda t, h: (t, {**h, "format": "thgs.hierarchy"}),
         "not a thgs semantic field file (format 'thgs.hierarchy')",
     ),
+    "version 1 without timings": (
+        lambda t, h: (t, {**h, "version": 1}),
+        "metadata lacks ['timings']",
+    ),
     "metadata key missing": (
         lambda t, h: (t, {k: v for k, v in h.items() if k != "space"}),
         "metadata lacks ['space']",
     ),
     "timings not pairs": (
-        lambda t, h: (t, {**h, "timings": {"lift": 1.0}}),
+        lambda t, h: (t, {**h, "version": 1, "timings": {"lift": 1.0}}),
         "metadata 'timings' must be a list of [stage, seconds] pairs",
     ),
     "timings repeat a stage": (
-        lambda t, h: (t, {**h, "timings": [["lift", 1.0], ["lift", 2.0]]}),
+        lambda t, h: (t, {**h, "version": 1, "timings": [["lift", 1.0], ["lift", 2.0]]}),
         "metadata 'timings' names a stage twice",
     ),
     "timing negative": (
-        lambda t, h: (t, {**h, "timings": [["lift", -1.0]]}),
+        lambda t, h: (t, {**h, "version": 1, "timings": [["lift", -1.0]]}),
         "timings['lift'] must be finite seconds >= 0",
     ),
     "tensor missing": (
@@ -520,7 +536,7 @@ TAMPERED = {
     ),
     "tensor unexpected": (
         lambda t, h: ({**t, "names": np.zeros(1, np.uint8)}, h),
-        "unexpected tensors ['names'] in format version 1",
+        "unexpected tensors ['names'] in format version 2",
     ),
     "labels as int64": (
         lambda t, h: (_retype(t, "labels", np.int64), h),

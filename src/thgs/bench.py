@@ -306,7 +306,11 @@ def _bench_scene(
             )
             started = time.perf_counter()
             report = evaluate_dataset(
-                ground_truth, Segmenter(regions, encoder), scene.gaussians, scene.cameras
+                ground_truth,
+                Segmenter(regions, encoder),
+                scene.gaussians,
+                scene.cameras,
+                raster=variant.superpoints.lift.raster,
             )
             stages = {"lift": lifted.seconds, **levels.timings}
             counts = tuple(int(levels.labels[:, k].max()) + 1 for k in range(4))

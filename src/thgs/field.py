@@ -14,7 +14,8 @@ One field is stored as one safetensors file::
     seen_k       uint8   [R_k]         1 = the level-k region got a feature from some view
     metadata     {"thgs": JSON, sorted keys}
 
-The file is written atomically, and the same field always gives the same bytes.
+The file is written atomically, and the same field always gives the same bytes; the build's
+timings are not in it (version 2), so building the same inputs twice gives the same file.
 """
 
 from __future__ import annotations
@@ -47,7 +48,7 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 """Version of the semantic-field file layout this thgs writes (and the newest it reads)."""
 
 FIELD_LEVELS = ("superpoint", "subpart", "part", "object")
@@ -56,7 +57,9 @@ FIELD_LEVELS = ("superpoint", "subpart", "part", "object")
 _FORMAT = "thgs.semantic_field"
 _FINGERPRINT = re.compile(r"sha256:[0-9a-f]{64}")
 _UNIT_TOLERANCE = 1e-4
-_METADATA_KEYS = ("config", "fingerprint", "gaussians", "region_counts", "space", "timings")
+_METADATA_KEYS = ("config", "fingerprint", "gaussians", "region_counts", "space")
+_V1_METADATA_KEYS = (*_METADATA_KEYS, "timings")
+"""Version 1 also stored the build's timings, which made every build's bytes differ."""
 _TENSOR_DTYPES: dict[str, type[np.generic]] = {
     "labels": np.int32,
     **{f"parents_{k}": np.int32 for k in (1, 2, 3)},
@@ -86,7 +89,9 @@ class SemanticField:
         fingerprint: :func:`scene_fingerprint` of the Gaussians the field was built on.
         config: the build config, JSON values only (nested dicts with string keys, lists,
             strings, finite numbers, booleans, None).
-        timings: wall time per build stage in seconds, in the order the stages ran.
+        timings: wall time per build stage in seconds, in the order the stages ran. Kept in
+            memory only: :func:`save_field` does not write them (the same build must give the
+            same bytes), so a loaded field has none (a version-1 file's stored ones excepted).
     """
 
     labels: np.ndarray
@@ -406,7 +411,6 @@ def save_field(path: str | os.PathLike[str], field: SemanticField) -> None:
         "space": field.space,
         "fingerprint": field.fingerprint,
         "config": field.config,
-        "timings": [[stage, float(seconds)] for stage, seconds in field.timings.items()],
         "gaussians": len(field),
         "region_counts": list(field.region_counts),
     }
@@ -420,7 +424,8 @@ def save_field(path: str | os.PathLike[str], field: SemanticField) -> None:
 def load_field(path: str | os.PathLike[str]) -> SemanticField:
     """Read a file written by :func:`save_field`; the result has passed :meth:`check`.
 
-    ``config`` comes back as parsed JSON (tuples saved as lists); ``timings`` keep their order.
+    ``config`` comes back as parsed JSON (tuples saved as lists); ``timings`` are empty (a
+    version-1 file's stored ones excepted, in their order).
 
     Raises:
         InputError: naming ``path``, if the file is missing, unreadable, not a safetensors
@@ -478,7 +483,7 @@ def load_field(path: str | os.PathLike[str]) -> SemanticField:
         space=header["space"],
         fingerprint=header["fingerprint"],
         config=header["config"],
-        timings=dict(header["timings"]),
+        timings=dict(header.get("timings", [])),
     )
     field.check(source=str(path))
     logger.debug("read semantic field %s from %s", field, path)
@@ -502,9 +507,13 @@ def _read_header(path: Path, metadata: dict[str, str]) -> dict[str, Any]:
             path,
             f"written by a newer thgs (version {version}), this one reads {FORMAT_VERSION}",
         )
-    missing = [key for key in _METADATA_KEYS if key not in header]
+    missing = [
+        key for key in (_V1_METADATA_KEYS if version == 1 else _METADATA_KEYS) if key not in header
+    ]
     if missing:
         raise InputError(path, f"metadata lacks {missing}")
+    if version > 1:
+        return header
     timings = header["timings"]
     if not isinstance(timings, list) or not all(
         isinstance(pair, list) and len(pair) == 2 and isinstance(pair[0], str) for pair in timings

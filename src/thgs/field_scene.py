@@ -35,14 +35,25 @@ def record_scene(
     iteration: int | None = None,
     images: str | None = None,
     scale: float = 1.0,
+    field_path: str | os.PathLike[str] | None = None,
 ) -> SemanticField:
     """``field`` with how to reload its scene stored under ``config["scene"]``.
 
-    Paths are stored absolute, so the field can be used from any working folder.
+    With ``field_path`` (where the field will be written), the scene's paths are stored relative
+    to the field's folder, so that a field and its scene moved or copied together still find
+    each other, and the same build in another folder writes the same bytes; without it they are
+    stored absolute. Either way the field can be used from any working folder.
     """
-    record: dict[str, Any] = {"path": str(Path(path).resolve())}
+
+    def stored(value: str | os.PathLike[str]) -> str:
+        resolved = Path(value).resolve()
+        if field_path is None:
+            return str(resolved)
+        return os.path.relpath(resolved, Path(field_path).resolve().parent)
+
+    record: dict[str, Any] = {"path": stored(path)}
     if source is not None:
-        record["source"] = str(Path(source).resolve())
+        record["source"] = stored(source)
     if iteration is not None:
         record["iteration"] = int(iteration)
     if images is not None:
@@ -84,7 +95,10 @@ def open_field_scene(
                 field_path,
                 "records no scene (built by an older thgs?); pass the scene with --scene",
             )
-        scene, source = record["path"], record.get("source")
+        # relative paths are relative to the field's folder (joining keeps absolute ones)
+        folder = field_path.resolve().parent
+        scene = folder / record["path"]
+        source = None if record.get("source") is None else folder / record["source"]
         iteration, images = record.get("iteration"), record.get("images")
         scale = record.get("scale", 1.0)
         if not Path(scene).exists():

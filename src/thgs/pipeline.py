@@ -11,16 +11,20 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
 
+from thgs._config_json import config_from_json
+from thgs._json import load_json
 from thgs.errors import InputError
 from thgs.features import FeatureConfig, level_features
-from thgs.field import SemanticField, scene_fingerprint
+from thgs.field import SemanticField, load_field, scene_fingerprint
 from thgs.graph import (
     GraphConfig,
     PartitionConfig,
@@ -39,6 +43,7 @@ from thgs.hierarchy import (
     merge_levels,
 )
 from thgs.lift import LiftConfig, ViewLift, lift_views
+from thgs.render import RasterConfig
 from thgs.scene import Cameras, Gaussians
 
 __all__ = [
@@ -52,8 +57,11 @@ __all__ = [
     "build_field",
     "build_levels",
     "lift_scene",
+    "lifted_raster",
     "partition_lifted",
     "partition_scene",
+    "read_field_config",
+    "recorded_config",
 ]
 
 logger = logging.getLogger(__name__)
@@ -372,6 +380,86 @@ class FieldConfig:
         for key in ("backend", "precision"):
             raster.pop(key)
         return document
+
+    @classmethod
+    def from_json(cls, document: Any, where: str = "FieldConfig") -> FieldConfig:
+        """The config :meth:`to_json` wrote: ``FieldConfig.from_json(c.to_json()) == c`` up to
+        the rasterization's backend and precision (``"auto"`` again).
+
+        A setting missing from ``document`` takes today's default (a record from an older thgs
+        that lacked it).
+
+        Raises:
+            InputError: naming ``where`` and the key: an unknown setting, a value of the wrong
+                type or outside its choices.
+        """
+        return config_from_json(cls, document, where)
+
+    def with_settings(self, assignments: Sequence[str]) -> FieldConfig:
+        """This config with settings changed by ``"dotted.key=VALUE"`` assignments, e.g.
+        ``"merge.min_region_gaussians=30"`` or ``"superpoints.lift.raster.backend=torch"``.
+
+        VALUE is JSON (``30``, ``0.5``, ``true``, ``[0.9, 0.8, 0.7]``); anything that is not
+        JSON is taken as a string (``torch``). Every setting of every stage is reachable.
+
+        Raises:
+            InputError: an assignment without ``=``, an unknown key, a value of the wrong type.
+        """
+        document = json.loads(json.dumps(asdict(self)))
+        for assignment in assignments:
+            key, equals, text = assignment.partition("=")
+            if not equals or not key.strip():
+                raise InputError("--set", f"expected KEY=VALUE, got {assignment!r}")
+            *parents, name = key.strip().split(".")
+            node = document
+            for i, part in enumerate(parents):
+                if not isinstance(node.get(part), dict):
+                    raise InputError("--set", f"{'.'.join(parents[: i + 1])!r} is not a stage")
+                node = node[part]
+            if name not in node:
+                raise InputError("--set", f"unknown setting {key!r}; known here: {', '.join(node)}")
+            try:
+                node[name] = json.loads(text)
+            except json.JSONDecodeError:
+                node[name] = text
+        return FieldConfig.from_json(document, "--set")
+
+
+def recorded_config(field: SemanticField, source: str = "field") -> FieldConfig:
+    """The :class:`FieldConfig` a field was built with, from its record (the ``scene`` record
+    aside), so that it can be rebuilt or its settings read with their types.
+
+    Raises:
+        InputError: the record is not a valid FieldConfig (named by ``source`` and the key).
+    """
+    document = {key: value for key, value in field.config.items() if key != "scene"}
+    return FieldConfig.from_json(document, f"{source}: config")
+
+
+def read_field_config(path: str | os.PathLike[str]) -> FieldConfig:
+    """A :class:`FieldConfig` from a JSON file (:meth:`FieldConfig.to_json`'s document) or from
+    a field file's record (:func:`recorded_config`), so that a field can be rebuilt as it was.
+
+    Raises:
+        InputError: naming the file: missing, not JSON or not a field, or not a valid config.
+    """
+    path = Path(path)
+    if path.suffix.lower() == ".json":
+        return FieldConfig.from_json(load_json(path), str(path))
+    return recorded_config(load_field(path), str(path))
+
+
+def lifted_raster(field: SemanticField, source: str = "field") -> RasterConfig:
+    """The rasterization settings the field was lifted with, to render its views the same way.
+
+    A record that is not a valid :class:`FieldConfig` (a field from a thgs whose settings had
+    other names) gives the default settings, with a logged warning.
+    """
+    try:
+        return recorded_config(field, source).superpoints.lift.raster
+    except InputError as error:
+        logger.warning("%s; rendering with the default RasterConfig", error)
+        return RasterConfig()
 
 
 PRESETS: dict[str, Callable[[], FieldConfig]] = {

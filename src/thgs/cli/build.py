@@ -41,7 +41,9 @@ def build(
     *,
     out: Annotated[Path, tyro.conf.arg(aliases=("-o",))],
     guidance: Path | None = None,
-    preset: Literal["lerf", "3dovs"] = "lerf",
+    preset: Literal["lerf", "3dovs"] | None = None,
+    config: Path | None = None,
+    set: tuple[str, ...] = (),
     source: Path | None = None,
     iteration: int | None = None,
     images: str | None = None,
@@ -64,7 +66,13 @@ def build(
         out: the field file to write (e.g. scene.thgs); replaced if it exists.
         guidance: the language_features folder (LangSplat layout: <stem>_s.npy, <stem>_f.npy);
             default: language_features in --source, else in the scene folder.
-        preset: the reference's settings for LERF-OVS (lerf) or 3D-OVS (3dovs).
+        preset: the reference's settings for LERF-OVS (lerf, the default) or 3D-OVS (3dovs).
+        config: every setting from a file instead of a preset: a JSON config (the "config"
+            object of a field's record, FieldConfig.to_json) or a field file, to rebuild a
+            field exactly as it was built.
+        set: change single settings, e.g. --set merge.min_region_gaussians=30
+            superpoints.lift.raster.backend=torch (dotted names as in the config; values are
+            JSON, or text); every setting of every stage is reachable (docs/build.md).
         source: cameras from here instead of the model's cameras.json (COLMAP, transforms.json).
         iteration: which iteration_* of a model folder (default: the newest).
         images: image folder name inside the source, e.g. images_4.
@@ -87,40 +95,36 @@ def build(
     from thgs.device import resolve_device
     from thgs.field import save_field
     from thgs.field_scene import record_scene
-    from thgs.guidance import load_guidance, read_embedding_space
-    from thgs.pipeline import PRESETS, build_field
-    from thgs.text import LANGSPLAT_SPACE
+    from thgs.guidance import guidance_folder, guidance_space, load_guidance
+    from thgs.pipeline import PRESETS, build_field, read_field_config
 
     setup_logging(verbose)
+    if config is not None and preset is not None:
+        raise ThgsError("pass either --preset or --config, not both")
+    settings = read_field_config(config) if config is not None else PRESETS[preset or "lerf"]()
+    settings = settings.with_settings(set)
+    if reference:
+        settings = settings.as_reference()
+    if not repeated_parts:
+        settings = replace(settings, repeats=replace(settings.repeats, enabled=False))
     loaded = load_scene(scene, source=source, iteration=iteration, images=images, scale=scale)
     if loaded.cameras is None:
         raise ThgsError(f"{scene}: no cameras; pass --source with COLMAP or transforms.json")
-    if guidance is None:
-        root = source if source is not None and source.is_dir() else scene
-        guidance = (root if root.is_dir() else root.parent) / "language_features"
+    guidance = guidance if guidance is not None else guidance_folder(scene, source)
     views = load_guidance(guidance, loaded.cameras, resize=resize)
-    if space is None:
-        recorded = read_embedding_space(guidance)
-        dim = int(views[0].features.shape[1])
-        if recorded is not None:
-            space = recorded[0]
-        elif dim == 512:
-            space = LANGSPLAT_SPACE
-        else:
-            raise ThgsError(
-                f"{guidance}: {dim}-D features and no embedding.json; name their space with --space"
-            )
-    config = PRESETS[preset]()
-    if reference:
-        config = config.as_reference()
-    if not repeated_parts:
-        config = replace(config, repeats=replace(config.repeats, enabled=False))
+    space = space if space is not None else guidance_space(guidance, views)
     with stage_progress() as bar:
         field = build_field(
-            loaded.to(resolve_device(device)), views, config, space=space, progress=StageBars(bar)
+            loaded.to(resolve_device(device)), views, settings, space=space, progress=StageBars(bar)
         )
     field = record_scene(
-        field, scene, source=source, iteration=iteration, images=images, scale=scale
+        field,
+        scene,
+        source=source,
+        iteration=iteration,
+        images=images,
+        scale=scale,
+        field_path=out,
     )
     save_field(out, field)
     stdout.print(_counts_table(f"thgs build {scene}", field.region_counts, field.timings))

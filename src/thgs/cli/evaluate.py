@@ -71,6 +71,7 @@ def evaluate(
     from thgs.eval.segmenter import Regions, Segmenter
     from thgs.export import write_json
     from thgs.field_scene import open_field_scene
+    from thgs.pipeline import lifted_raster
     from thgs.text import load_text_encoder
 
     setup_logging(verbose)
@@ -95,6 +96,7 @@ def evaluate(
             loaded.cameras,
             protocols=protocol or None,
             scannet_level=scannet_level,
+            raster=lifted_raster(semantic, str(field)),
             progress=StageBars(bar),
         )
     out = out if out is not None else field.with_suffix(".eval.json")

@@ -43,6 +43,7 @@ from thgs.eval.ground_truth import read_hierarchy
 from thgs.eval.scannet import read_scannet_labels
 from thgs.eval.segmenter import Segmenter
 from thgs.eval.three_dovs import read_3dovs_segmentations
+from thgs.render import RasterConfig
 from thgs.scene import Cameras, Gaussians
 
 __all__ = [
@@ -180,6 +181,7 @@ def evaluate_dataset(
     *,
     protocols: Sequence[str] | None = None,
     scannet_level: int = 3,
+    raster: RasterConfig = RasterConfig(),
     progress: Callable[[str, int, int], None] | None = None,
 ) -> EvalReport:
     """Run ``protocols`` (default: every one whose ground truth is present).
@@ -190,6 +192,8 @@ def evaluate_dataset(
         gaussians: the N Gaussians; cameras: the scene's cameras (needed by the 2D protocols).
         protocols: names from :data:`PROTOCOLS`.
         scannet_level: the level whose features classify ScanNet points.
+        raster: how the 2D protocols render views: the settings the field was lifted with
+            (:func:`thgs.pipeline.lifted_raster`), so that masks are rendered as they were lifted.
         progress: ``progress(protocol, done, total)`` per evaluated frame.
 
     Raises:
@@ -221,10 +225,14 @@ def evaluate_dataset(
 
         assert cameras is not None or name in ("scannet", "hierarchy")
         if name == "lerf":
-            results.append(evaluate_lerf(segmenter, gaussians, cameras, frames, progress=step))
+            results.append(
+                evaluate_lerf(segmenter, gaussians, cameras, frames, raster=raster, progress=step)
+            )
         elif name == "lerf-langsplat":
             results.append(
-                evaluate_lerf_langsplat(segmenter, gaussians, cameras, frames, progress=step)
+                evaluate_lerf_langsplat(
+                    segmenter, gaussians, cameras, frames, raster=raster, progress=step
+                )
             )
         elif name == "lerf-opengaussian":
             results.append(
@@ -234,13 +242,16 @@ def evaluate_dataset(
                     cameras,
                     frames,
                     scene_name=ground_truth.scene_name,
+                    raster=raster,
                     progress=step,
                 )
             )
         elif name == "3dovs":
             segmentations = read_3dovs_segmentations(ground_truth.three_dovs)
             results.append(
-                evaluate_3dovs(segmenter, gaussians, cameras, segmentations, progress=step)
+                evaluate_3dovs(
+                    segmenter, gaussians, cameras, segmentations, raster=raster, progress=step
+                )
             )
         elif name == "scannet":
             labels = read_scannet_labels(ground_truth.scannet)

@@ -19,6 +19,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -28,6 +29,7 @@ from thgs._atomic import atomic_output
 from thgs._json import load_json
 from thgs.errors import InputError
 from thgs.scene import Cameras
+from thgs.text import LANGSPLAT_SPACE
 
 __all__ = [
     "EMBEDDING_FILE",
@@ -195,6 +197,36 @@ def read_embedding_space(folder: str | os.PathLike[str]) -> tuple[str, int] | No
     if not isinstance(dim, int) or dim < 1:
         raise InputError(path, f"'dim' must be a positive integer, got {dim!r}")
     return document["space"], dim
+
+
+def guidance_folder(
+    scene: str | os.PathLike[str], source: str | os.PathLike[str] | None = None
+) -> Path:
+    """Where a scene's guidance is by default: ``language_features`` in the source folder
+    (COLMAP / transforms.json, LangSplat's layout) when one is given, else beside the model
+    (in its folder, or the PLY's folder)."""
+    root = Path(source) if source is not None and Path(source).is_dir() else Path(scene)
+    return (root if root.is_dir() else root.parent) / "language_features"
+
+
+def guidance_space(folder: str | os.PathLike[str], views: Sequence[ViewGuidance]) -> str:
+    """The embedding space of the features in ``folder``: the one its ``embedding.json``
+    records, else LangSplat's OpenCLIP ViT-B/16 for 512-D features (what LangSplat writes
+    without recording it).
+
+    Raises:
+        InputError: no ``embedding.json`` and features that are not 512-D (their space cannot
+            be guessed), or a malformed ``embedding.json``.
+    """
+    recorded = read_embedding_space(folder)
+    if recorded is not None:
+        return recorded[0]
+    dim = int(views[0].features.shape[1]) if views else 0
+    if dim == 512:
+        return LANGSPLAT_SPACE
+    raise InputError(
+        folder, f"{dim}-D features and no {EMBEDDING_FILE}; name their space (thgs build --space)"
+    )
 
 
 def resample_segments(segments: np.ndarray, height: int, width: int) -> np.ndarray:
