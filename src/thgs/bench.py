@@ -166,6 +166,9 @@ class BenchConfig:
         gaussians, views: override the presets' sizes (quick runs).
         cache: where the synthetic datasets are kept (default :func:`thgs.demo.default_cache`).
         device: where the scenes are built and scored (:func:`thgs.device.resolve_device`).
+        lift_cache: a folder keeping each scene's lifts between runs (:mod:`thgs.lift_cache`),
+            for quality sweeps: the ``lift`` stage then times reading the cache, not lifting.
+            None (the default) lifts every run, once per scene and lift setting.
     """
 
     presets: tuple[str, ...] = field(default_factory=default_presets)
@@ -175,6 +178,7 @@ class BenchConfig:
     views: int | None = None
     cache: Path | None = None
     device: str = "auto"
+    lift_cache: Path | None = None
 
     def check(self) -> BenchConfig:
         for name in self.presets:
@@ -288,7 +292,7 @@ def _bench_scene(
     tag = f"{preset} seed {seed}"
     for lift, names in lift_groups:
         lifted, _, lift_peak, lift_gpu = measured(
-            lambda lift=lift: lift_scene(scene, guidance, lift)
+            lambda lift=lift: lift_scene(scene, guidance, lift, cache=config.lift_cache)
         )
         for name in names:
             if progress is not None:

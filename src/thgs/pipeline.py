@@ -43,6 +43,7 @@ from thgs.hierarchy import (
     merge_levels,
 )
 from thgs.lift import LiftConfig, ViewLift, lift_views
+from thgs.lift_cache import lift_cache_path, lift_key, read_cached_lift, write_lift
 from thgs.render import RasterConfig
 from thgs.scene import Cameras, Gaussians
 
@@ -258,9 +259,16 @@ def lift_scene(
     guidance: Sequence[ViewGuidance],
     config: LiftConfig = LiftConfig(),
     progress: Progress | None = None,
+    *,
+    cache: str | os.PathLike[str] | None = None,
 ) -> LiftedScene:
     """Every view's masks lifted onto the Gaussians, after checking the inputs (the first stage
     of :func:`partition_scene` and :func:`build_field`).
+
+    Args:
+        cache: a folder keeping lifts (:mod:`thgs.lift_cache`): a lift of the same Gaussians,
+            cameras, guidance and settings is read from it instead of computed (the same
+            tensors), and a computed one is written to it. None: no cache.
 
     Raises:
         InputError: the inputs :func:`partition_scene` refuses.
@@ -274,13 +282,29 @@ def lift_scene(
             "%d of %d views have no masks (first: %s)", len(empty), len(guidance), empty[0]
         )
     started = time.perf_counter()
-    lifted = lift_views(
-        gaussians,
-        cameras,
-        guidance,
-        config,
-        progress=None if progress is None else lambda done, total: progress("lift", done, total),
-    )
+    key = cached = None
+    if cache is not None:
+        key = lift_key(gaussians, cameras, guidance, config)
+        cached = read_cached_lift(lift_cache_path(cache, key), key, len(guidance))
+    if cached is not None:
+        lifted = [
+            view.to(gaussians.device).check(len(gaussians), source=f"cached lift of {g.stem}")
+            for view, g in zip(cached, guidance)
+        ]
+        if progress is not None:
+            progress("lift", len(lifted), len(lifted))
+    else:
+        lifted = lift_views(
+            gaussians,
+            cameras,
+            guidance,
+            config,
+            progress=None
+            if progress is None
+            else lambda done, total: progress("lift", done, total),
+        )
+        if cache is not None and key is not None:
+            write_lift(lift_cache_path(cache, key), key, lifted)
     seconds = time.perf_counter() - started
     logger.info("lift: %d views in %.2f s", len(lifted), seconds)
     return LiftedScene(gaussians, cameras, lifted, config, len(empty), seconds)
@@ -621,6 +645,7 @@ def build_field(
     *,
     space: str,
     progress: Progress | None = None,
+    lift_cache: str | os.PathLike[str] | None = None,
 ) -> SemanticField:
     """The semantic field of a scene: lift → graph → reweight → partition → merge → features.
 
@@ -641,6 +666,9 @@ def build_field(
             :func:`thgs.guidance.read_embedding_space` returns); recorded so that queries are
             encoded in the same space.
         progress: optional ``progress(stage, done, total)`` callback (:data:`Progress`).
+        lift_cache: a folder to keep and reuse the lift in (:func:`lift_scene`'s ``cache``):
+            builds that differ only after the lift (merging, features, partition settings) lift
+            once.
 
     Returns:
         a checked :class:`thgs.field.SemanticField` with nested levels 0–3 (region counts never
@@ -660,7 +688,7 @@ def build_field(
     if not isinstance(space, str) or not space.strip():
         raise InputError("space", "name the embedding space of the guidance features")
     _check_features(guidance)
-    lifted = lift_scene(scene, guidance, config.superpoints.lift, progress)
+    lifted = lift_scene(scene, guidance, config.superpoints.lift, progress, cache=lift_cache)
     levels = build_levels(lifted, guidance, config, progress=progress)
     assert levels.parents is not None  # every mode but "independent" nests
     timings = {"lift": lifted.seconds, **levels.timings}

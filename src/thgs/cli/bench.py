@@ -23,6 +23,7 @@ def bench(
     views: int | None = None,
     cache: Path | None = None,
     device: Literal["auto", "cpu", "cuda", "mps"] = "auto",
+    lift_cache: Path | None = None,
     verbose: bool = False,
 ) -> None:
     """Build the synthetic scenes with the full method and each ablation; time, memory, scores.
@@ -43,13 +44,22 @@ def bench(
         cache: where synthetic datasets are kept (default ~/.cache/thgs).
         device: where to build and score: auto (a CUDA GPU if torch sees one, else MPS, else the
             CPU), cpu, cuda or mps.
+        lift_cache: keep each scene's lifts in this folder and reuse them in later runs (quality
+            sweeps; the lift's time is then the cache's reading time).
         verbose: log every stage.
     """
     from thgs.bench import BenchConfig, require_matplotlib, run_bench, write_bench
 
     setup_logging(verbose)
     require_matplotlib()
-    config = BenchConfig(seeds=seeds, gaussians=gaussians, views=views, cache=cache, device=device)
+    config = BenchConfig(
+        seeds=seeds,
+        gaussians=gaussians,
+        views=views,
+        cache=cache,
+        device=device,
+        lift_cache=lift_cache,
+    )
     if presets:
         config = replace(config, presets=presets)
     if variants:

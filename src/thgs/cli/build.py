@@ -53,6 +53,7 @@ def build(
     reference: bool = False,
     repeated_parts: bool = True,
     device: Literal["auto", "cpu", "cuda", "mps"] = "auto",
+    lift_cache: Path | None = None,
     verbose: bool = False,
 ) -> None:
     """Build the semantic field of a scene from its views' masks and mask features.
@@ -90,6 +91,9 @@ def build(
             paper's top-3 query selection scores such pieces better: docs/build.md).
         device: where to compute: auto (a CUDA GPU if torch sees one, else MPS, else the CPU),
             cpu, cuda or mps; rendering uses the device's best backend (docs/rendering.md).
+        lift_cache: a folder to keep the lift in and reuse it from: a build of the same scene,
+            guidance and lift settings (e.g. trying merge or partition settings with --set)
+            reads it instead of lifting again (docs/build.md).
         verbose: log every stage with its time.
     """
     from thgs.device import resolve_device
@@ -115,7 +119,12 @@ def build(
     space = space if space is not None else guidance_space(guidance, views)
     with stage_progress() as bar:
         field = build_field(
-            loaded.to(resolve_device(device)), views, settings, space=space, progress=StageBars(bar)
+            loaded.to(resolve_device(device)),
+            views,
+            settings,
+            space=space,
+            progress=StageBars(bar),
+            lift_cache=lift_cache,
         )
     field = record_scene(
         field,
