@@ -28,8 +28,7 @@ from thgs.eval.evaluate import (
 )
 from thgs.eval.ground_truth import Hierarchy
 from thgs.eval.protocols import langsplat_level, langsplat_localized, langsplat_mask
-from thgs.eval.segmenter import Regions, Segmenter
-from thgs.query import CANONICAL_PHRASES, QueryConfig
+from thgs.query import CANONICAL_PHRASES, FieldQuery, QueryConfig, Regions
 from thgs.scene import Cameras, Gaussians
 from thgs.views import relevancy_map, selection_masks
 
@@ -127,14 +126,14 @@ def test_lerf_perfect_selection_scores_one_and_reference_pools_both(scene):
     assert mug.sum() > 1000 and bear.sum() > 1000 and not (mug & bear).any()
     # labels stated at twice the render resolution: polygons are scaled down, exactly
     frames = [("frame_00001", _frame({"mug": mug, "bear": bear}, scale=2.0))]
-    best = Segmenter(_regions(), _TableEncoder(), QueryConfig(mode="level", level=3))
+    best = FieldQuery(_regions(), _TableEncoder(), QueryConfig(mode="level", level=3))
     result = evaluate_lerf(best, gaussians, cameras, frames)
     assert result.metrics == {"miou": 1.0, "accuracy": 1.0}
     assert [(i["prompt"], i["iou"]) for i in result.items] == [("mug", 1.0), ("bear", 1.0)]
 
     # the paper's selection pools levels 2 and 3 (top 3 each, best 3 kept): with only two
     # regions per level it always keeps the other patch too, so IoU = |own| / |both|
-    reference = Segmenter(_regions(), _TableEncoder())
+    reference = FieldQuery(_regions(), _TableEncoder())
     result = evaluate_lerf(reference, gaussians, cameras, frames)
     both = (mug | bear).sum()
     expected_iou = {"mug": mug.sum() / both, "bear": bear.sum() / both}
@@ -154,7 +153,7 @@ def test_lerf_category_of_several_polygons_is_their_union(scene):
     # region above a tiny relevancy, i.e. both patches: exactly the union
     frame = _frame({"mug": masks[..., 0] | masks[..., 1]})
     assert len(frame.objects) == 2
-    both = Segmenter(
+    both = FieldQuery(
         _regions(), _TableEncoder(), QueryConfig(mode="threshold", level=3, threshold=1e-6)
     )
     result = evaluate_lerf(both, gaussians, cameras, [("frame_00001", frame)])
@@ -165,7 +164,7 @@ def test_empty_prediction_scores_zero_under_every_mask_protocol(scene):
     gaussians, cameras = scene
     masks = _truth_masks(gaussians, cameras)
     frames = [("frame_00001", _frame({"mug": masks[..., 0]}))]
-    unseen = Segmenter(_regions(seen=False), _TableEncoder(), QueryConfig(mode="level"))
+    unseen = FieldQuery(_regions(seen=False), _TableEncoder(), QueryConfig(mode="level"))
     result = evaluate_lerf(unseen, gaussians, cameras, frames)
     assert result.metrics["miou"] == 0.0
     assert result.items[0]["predicted_pixels"] == 0
@@ -182,7 +181,7 @@ def test_opengaussian_thresholds_the_silhouette_at_07(scene):
     loose = _truth_masks(gaussians, cameras, threshold=0.5)
     assert (loose[..., 0] & ~truth[..., 0]).any()  # the patch edges differ between thresholds
     frames = [("frame_00001", _frame({"mug": truth[..., 0]}))]
-    best = Segmenter(_regions(), _TableEncoder(), QueryConfig(mode="level"))
+    best = FieldQuery(_regions(), _TableEncoder(), QueryConfig(mode="level"))
     result = evaluate_lerf_opengaussian(best, gaussians, cameras, frames)
     assert result.protocol == "lerf-opengaussian"
     assert result.metrics == {"miou": 1.0, "acc@0.25": 1.0, "acc@0.5": 1.0}
@@ -194,11 +193,11 @@ def test_langsplat_protocol_composes_the_rules_on_rendered_relevancy(scene):
     gaussians, cameras = scene
     masks = _truth_masks(gaussians, cameras)
     frames = [("frame_00001", _frame({"mug": masks[..., 0], "bear": masks[..., 1]}))]
-    segmenter = Segmenter(_regions(), _TableEncoder())
-    result = evaluate_lerf_langsplat(segmenter, gaussians, cameras, frames)
+    engine = FieldQuery(_regions(), _TableEncoder())
+    result = evaluate_lerf_langsplat(engine, gaussians, cameras, frames)
     for q, item in enumerate(result.items):
         per_gaussian = np.stack(
-            [segmenter.relevancy([item["prompt"]], k)[:, 0] for k in (1, 2, 3)], axis=1
+            [engine.gaussian_relevancies([item["prompt"]], k)[:, 0] for k in (1, 2, 3)], axis=1
         )
         stack = np.moveaxis(relevancy_map(gaussians, cameras.select([0]), per_gaussian), 2, 0)
         chosen = langsplat_level(stack)
@@ -232,7 +231,7 @@ def test_3dovs_queries_wood_wall_as_wood_at_the_masks_resolution(scene):
     features = np.stack([_unit(1, 0, 0, 0), _unit(0, 0, 1, 0)]).astype(np.float32)
     regions = Regions(regions.labels, (features,) * 3, regions.seen, SPACE)
     result = evaluate_3dovs(
-        Segmenter(regions, encoder, QueryConfig(mode="level")), gaussians, cameras, segmentations
+        FieldQuery(regions, encoder, QueryConfig(mode="level")), gaussians, cameras, segmentations
     )
     assert [(i["prompt"], i["query"], i["iou"]) for i in result.items] == [
         ("mug", "mug", 1.0),
@@ -240,7 +239,7 @@ def test_3dovs_queries_wood_wall_as_wood_at_the_masks_resolution(scene):
     ]
     bad = SegmentationSet(classes=("mug",), views={"07": {"mug": truth[..., 0]}})
     with pytest.raises(InputError, match="segmentations/07"):
-        evaluate_3dovs(Segmenter(regions, encoder), gaussians, cameras, bad)
+        evaluate_3dovs(FieldQuery(regions, encoder), gaussians, cameras, bad)
 
 
 def test_scannet_classifies_by_region_feature(scene):
@@ -250,19 +249,19 @@ def test_scannet_classifies_by_region_feature(scene):
     points = PointLabels(
         gaussians.means.numpy().astype(np.float32), labels, {1: "mug", 2: "bear", 3: "wood"}
     )
-    segmenter = Segmenter(_regions(), _TableEncoder())
-    (result,) = evaluate_scannet(segmenter, gaussians, points, subsets={"2": (1, 2)})
+    engine = FieldQuery(_regions(), _TableEncoder())
+    (result,) = evaluate_scannet(engine, gaussians, points, subsets={"2": (1, 2)})
     assert result.protocol == "scannet-2"
     assert result.metrics == {"miou": 1.0, "macc": 1.0}
     assert result.settings["points"] == 71
     # with "wood" evaluated, point 0 (wood, in the mug's region) is a mug false positive and
     # a missed wood: mug 35/36, bear 1, wood 0
-    (result,) = evaluate_scannet(segmenter, gaussians, points, subsets={"3": (1, 2, 3)})
+    (result,) = evaluate_scannet(engine, gaussians, points, subsets={"3": (1, 2, 3)})
     assert [i["iou"] for i in result.items] == pytest.approx([35 / 36, 1.0, 0.0])
     assert result.metrics["miou"] == pytest.approx((35 / 36 + 1) / 3)
     short = PointLabels(points.points[:10], labels[:10], points.class_names)
     with pytest.raises(InputError, match="10 points for 72 Gaussians"):
-        evaluate_scannet(segmenter, gaussians, short)
+        evaluate_scannet(engine, gaussians, short)
 
 
 def test_hierarchy_scores_levels_against_ground_truth():

@@ -15,6 +15,7 @@ from thgs.query import (
     CANONICAL_PHRASES,
     FieldQuery,
     QueryConfig,
+    Regions,
     default_threshold,
     relevancy,
     select,
@@ -184,6 +185,34 @@ def test_field_query_batches_caches_and_matches_the_pure_functions():
     np.testing.assert_allclose(per_gaussian, fq.relevancy(["red"], 3)[0][field.labels[:, 3]])
     summary = red.to_json(field)
     assert summary["gaussians"] == 4 and summary["regions"][0]["gaussians"] == 2
+
+
+def test_one_engine_on_a_field_or_on_regions_that_need_not_nest():
+    field = _field()
+    on_field = FieldQuery(field, _encoder())
+    regions = Regions.from_field(field)
+    on_regions = FieldQuery(regions, _encoder())
+    texts = ["red", "green", "pinkish"]
+    np.testing.assert_array_equal(on_field.selected(texts), on_regions.selected(texts))
+    # levels that do not nest: level 2 pairs Gaussians across the two objects
+    labels = field.labels.copy()
+    labels[:, 2] = np.array([0, 1, 2, 3, 0, 1, 2, 3])
+    crossed = FieldQuery(Regions(labels, field.features, field.seen, "test"), _encoder())
+    masks = crossed.selected(texts)
+    for q, text in enumerate(texts):  # brute force: the union of the chosen regions' members
+        chosen = crossed.select([text])[0].regions
+        expected = np.zeros(8, bool)
+        for level, region, _ in chosen:
+            expected |= labels[:, level] == region
+        np.testing.assert_array_equal(masks[:, q], expected)
+    scores = crossed.gaussian_relevancies(texts, 2)
+    np.testing.assert_allclose(scores, crossed.relevancy(texts, 2).T[labels[:, 2]])
+    # classify: the nearest text by cosine per Gaussian's region, −1 where unseen
+    np.testing.assert_array_equal(crossed.classify(["red", "green"], 2), [0, 0, 1, -1] * 2)
+    with pytest.raises(InputError, match="level: must be 1, 2 or 3, got 0"):
+        crossed.classify(["red"], 0)
+    with pytest.raises(InputError, match=r"level 2 has regions 0\.\.3, got 4"):
+        crossed.gaussians_of([(2, 4)])
 
 
 def test_threshold_mode_returns_nothing_for_an_irrelevant_text():

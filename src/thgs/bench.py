@@ -39,10 +39,10 @@ from thgs.demo import default_cache, open_synthetic_dataset, synthetic_dataset
 from thgs.device import resolve_device
 from thgs.errors import InputError, ThgsError
 from thgs.eval.dataset import evaluate_dataset, find_ground_truth
-from thgs.eval.segmenter import Regions, Segmenter
 from thgs.export import write_json
 from thgs.lift import LiftConfig
 from thgs.pipeline import FieldConfig, build_levels, lift_scene
+from thgs.query import FieldQuery, Regions
 from thgs.synthetic.scene import PRESETS
 from thgs.text import MINILM_SPACE, load_text_encoder
 
@@ -311,7 +311,7 @@ def _bench_scene(
             started = time.perf_counter()
             report = evaluate_dataset(
                 ground_truth,
-                Segmenter(regions, encoder),
+                FieldQuery(regions, encoder),
                 scene.gaussians,
                 scene.cameras,
                 raster=variant.superpoints.lift.raster,

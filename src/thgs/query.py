@@ -19,8 +19,10 @@ Three ways to turn relevancies into a selection (:class:`QueryConfig`):
   nothing in the scene selects nothing, and an object split into several regions is selected
   whole. The default threshold depends on the embedding space (:func:`default_threshold`).
 
-The selected Gaussians are the union of the chosen regions' members. :class:`FieldQuery` runs
-batches of queries on one field, with text embeddings and results cached per text.
+The selected Gaussians are the union of the chosen regions' members. :class:`FieldQuery` is the
+one query engine: it runs batches of queries on a field or on any :class:`Regions` (levels that
+need not nest), with text embeddings and results cached per text, for the CLI, the viewer and
+every evaluation protocol.
 """
 
 from __future__ import annotations
@@ -42,6 +44,7 @@ __all__ = [
     "CANONICAL_PHRASES",
     "FieldQuery",
     "QueryConfig",
+    "Regions",
     "Selection",
     "default_threshold",
     "relevancy",
@@ -258,6 +261,92 @@ def select(
     return tuple((level, int(region), float(scores[level][region])) for region in ranked)
 
 
+@dataclass(frozen=True, eq=False)
+class Regions:
+    """What queries read of a segmentation: regions of N Gaussians at levels 1–3 with their
+    features; the levels need not nest (the "no progressive merging" ablation's do not).
+
+    Attributes:
+        labels: [N, 4] integer region id per Gaussian at levels 0–3 (column k is level k; ids
+            0 … R_k − 1).
+        features: level k = 1..3 at index k − 1: [R_k, D] unit features (zero rows unseen).
+        seen: level k at index k − 1: [R_k] bool, whether any view saw the region.
+        space: the features' embedding space.
+        min_region_gaussians: regions with fewer Gaussians are never selected (the field's
+            small-region size; 0 selects every region).
+    """
+
+    labels: np.ndarray
+    features: tuple[np.ndarray, np.ndarray, np.ndarray]
+    seen: tuple[np.ndarray, np.ndarray, np.ndarray]
+    space: str
+    min_region_gaussians: int = 0
+
+    @classmethod
+    def from_field(cls, field: SemanticField) -> Regions:
+        """A field's regions, with its small-region size (:func:`small_region_size`)."""
+        return cls(field.labels, field.features, field.seen, field.space, small_region_size(field))
+
+    def __len__(self) -> int:
+        return int(self.labels.shape[0])
+
+    @property
+    def dim(self) -> int:
+        """D, the length of a feature vector."""
+        return int(self.features[0].shape[1])
+
+    def sizes(self, level: int) -> np.ndarray:
+        """[R_level] int64: the number of Gaussians in each region of ``level`` (1..3)."""
+        count = len(self.features[self.checked_level(level) - 1])
+        return np.bincount(self.labels[:, level], minlength=count).astype(np.int64)
+
+    def checked_level(self, level: int) -> int:
+        """``level`` as an int after checking that it is 1, 2 or 3 (the levels with features).
+
+        Raises:
+            InputError: anything else.
+        """
+        if isinstance(level, bool) or not isinstance(level, (int, np.integer)):
+            raise InputError("level", f"must be an integer, got {level!r}")
+        if int(level) not in (1, 2, 3):
+            raise InputError("level", f"must be 1, 2 or 3, got {level}")
+        return int(level)
+
+    def checked_region(self, level: int, region: int) -> int:
+        """``region`` as an int after checking that it is a region id of ``level``.
+
+        Raises:
+            InputError: not an integer, or not in 0..R_level − 1.
+        """
+        if isinstance(region, bool) or not isinstance(region, (int, np.integer)):
+            raise InputError("region", f"must be an integer, got {region!r}")
+        count = len(self.features[self.checked_level(level) - 1])
+        if not 0 <= int(region) < count:
+            raise InputError("region", f"level {level} has regions 0..{count - 1}, got {region}")
+        return int(region)
+
+    def check(self, source: str = "Regions") -> Regions:
+        """Verify shapes and id ranges; raise :class:`InputError` naming ``source``."""
+        labels = np.asarray(self.labels)
+        if labels.ndim != 2 or labels.shape[1] != 4:
+            raise InputError(source, f"labels must be [N, 4], got {list(labels.shape)}")
+        dims = set()
+        for k in (1, 2, 3):
+            features, seen = self.features[k - 1], self.seen[k - 1]
+            if features.ndim != 2 or seen.shape != (features.shape[0],):
+                raise InputError(
+                    source,
+                    f"level {k}: features {list(features.shape)} and seen {list(seen.shape)} "
+                    "must be [R, D] and [R]",
+                )
+            if len(labels) and (labels[:, k].min() < 0 or labels[:, k].max() >= len(features)):
+                raise InputError(source, f"level {k}: region ids outside 0..{len(features) - 1}")
+            dims.add(features.shape[1])
+        if len(dims) != 1:
+            raise InputError(source, f"levels have different feature dimensions {sorted(dims)}")
+        return self
+
+
 class _Members:
     """Every region's Gaussians at one level, grouped once so a union costs its size."""
 
@@ -270,39 +359,42 @@ class _Members:
 
 
 class FieldQuery:
-    """Text queries of one semantic field, with one text encoder.
+    """The query engine: text queries of one segmentation with one text encoder, used by the
+    CLI, the viewer and every evaluation protocol.
 
     Text embeddings and selections are cached per text (and per config), so asking again, or
     asking the same text with another mode, does not run the text model again.
 
     Args:
-        field: the semantic field.
-        encoder: a text encoder in ``field.space``.
+        regions: a semantic field, or any :class:`Regions` (levels that need not nest).
+        encoder: a text encoder in the regions' space.
         config: the default selection settings.
         source: what to name in errors (e.g. the field's path).
 
     Raises:
-        SpaceMismatchError: the encoder's space is not the field's.
+        SpaceMismatchError: the encoder's space is not the regions'.
     """
 
     def __init__(
         self,
-        field: SemanticField,
+        regions: SemanticField | Regions,
         encoder: TextEncoder,
         config: QueryConfig = QueryConfig(),
         *,
         source: str = "semantic field",
     ):
-        check_space(field.space, encoder, source)
-        self.field = field
+        if isinstance(regions, SemanticField):
+            regions = Regions.from_field(regions)
+        check_space(regions.space, encoder, source)
+        self.regions = regions.check(source)
         self.encoder = encoder
         self.config = config.check()
-        self.threshold = default_threshold(field.space)
-        self.min_gaussians = small_region_size(field)
+        self.threshold = default_threshold(regions.space)
+        self.min_gaussians = regions.min_region_gaussians
         self._canonical = encoder.encode(list(CANONICAL_PHRASES)).astype(np.float64)
         self._embeddings: dict[str, np.ndarray] = {}
-        self._members = {k: _Members(field.labels[:, k], field.region_counts[k]) for k in (1, 2, 3)}
-        self._sizes = {k: field.sizes(k) for k in (1, 2, 3)}
+        self._sizes = {k: regions.sizes(k) for k in (1, 2, 3)}
+        self._members = {k: _Members(regions.labels[:, k], len(self._sizes[k])) for k in (1, 2, 3)}
         self._results: OrderedDict[tuple[str, QueryConfig], Selection] = OrderedDict()
 
     def embed(self, texts: Sequence[str]) -> np.ndarray:
@@ -313,32 +405,38 @@ class FieldQuery:
             for text, vector in zip(new, self.encoder.encode(new)):
                 self._embeddings[text] = vector.astype(np.float64)
         if not texts:
-            return np.zeros((0, self.field.dim))
+            return np.zeros((0, self.regions.dim))
         return np.stack([self._embeddings[text] for text in texts])
 
     def relevancy(self, texts: Sequence[str], level: int, temperature: float = 10.0) -> np.ndarray:
         """[Q, R_level] relevancy of every level-``level`` region (1..3) for every text."""
-        level = self.field.checked_level(level, range(1, 4))
+        level = self.regions.checked_level(level)
         return relevancy(
-            self.field.features[level - 1],
+            self.regions.features[level - 1],
             self.embed(texts),
             self._canonical,
             temperature,
-            self.field.seen[level - 1],
+            self.regions.seen[level - 1],
         )
 
     def gaussian_relevancy(self, text: str, level: int, temperature: float = 10.0) -> np.ndarray:
         """[N] float64: each Gaussian carries its level-``level`` region's relevancy for
         ``text`` (what a relevancy map renders)."""
         scores = self.relevancy([text], level, temperature)[0]
-        return scores[self.field.labels[:, level]]
+        return scores[self.regions.labels[:, level]]
+
+    def gaussian_relevancies(self, texts: Sequence[str], level: int) -> np.ndarray:
+        """[N, Q] float64: each Gaussian carries its level-``level`` region's relevancy for each
+        text, at the config's temperature (what the LangSplat protocol renders)."""
+        scores = self.relevancy(texts, level, self.config.temperature)
+        return scores.T[self.regions.labels[:, level]]
 
     def gaussians_of(self, regions: Sequence[tuple[int, int]]) -> np.ndarray:
         """[N] bool: the members of the ``(level, region)`` pairs (levels 1..3)."""
-        mask = np.zeros(len(self.field), dtype=bool)
+        mask = np.zeros(len(self.regions), dtype=bool)
         for level, region in regions:
-            level = self.field.checked_level(level, range(1, 4))
-            self._members[level].mark(mask, self.field.checked_region(level, region))
+            level = self.regions.checked_level(level)
+            self._members[level].mark(mask, self.regions.checked_region(level, region))
         return mask
 
     def select(self, texts: Sequence[str], config: QueryConfig | None = None) -> list[Selection]:
@@ -372,6 +470,23 @@ class FieldQuery:
                     selection.gaussians.sum(),
                 )
         return [self._results[(text, config)] for text in texts]
+
+    def selected(self, texts: Sequence[str]) -> np.ndarray:
+        """[N, Q] bool: the Gaussians each text selects under the default config."""
+        selections = self.select(texts)
+        if not selections:
+            return np.zeros((len(self.regions), 0), dtype=bool)
+        return np.stack([selection.gaussians for selection in selections], axis=1)
+
+    def classify(self, texts: Sequence[str], level: int) -> np.ndarray:
+        """[N] int: per Gaussian, the index of the text whose embedding is closest (cosine) to
+        its level-``level`` region's feature; −1 for Gaussians of unseen regions (ScanNet's
+        per-point classes)."""
+        level = self.regions.checked_level(level)
+        cosine = self.regions.features[level - 1].astype(np.float64) @ self.embed(texts).T
+        best = cosine.argmax(axis=1)
+        best[~self.regions.seen[level - 1]] = -1
+        return best[self.regions.labels[:, level]]
 
     def with_config(self, **changes: Any) -> QueryConfig:
         """This query's default config with ``changes`` applied (checked)."""

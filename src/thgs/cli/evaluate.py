@@ -68,10 +68,10 @@ def evaluate(
     """
     from thgs._atomic import atomic_output
     from thgs.eval.dataset import evaluate_dataset, find_ground_truth
-    from thgs.eval.segmenter import Regions, Segmenter
     from thgs.export import write_json
     from thgs.field_scene import open_field_scene
     from thgs.pipeline import lifted_raster
+    from thgs.query import FieldQuery
     from thgs.text import load_text_encoder
 
     setup_logging(verbose)
@@ -87,11 +87,11 @@ def evaluate(
         )
     semantic, loaded = open_field_scene(field, scene, device=device)
     encoder = load_text_encoder(semantic.space, model_path=text_model)
-    segmenter = Segmenter(Regions.from_field(semantic), encoder, source=str(field))
+    engine = FieldQuery(semantic, encoder, source=str(field))
     with stage_progress() as bar:
         report = evaluate_dataset(
             ground_truth,
-            segmenter,
+            engine,
             loaded.gaussians,
             loaded.cameras,
             protocols=protocol or None,

@@ -44,7 +44,6 @@ from thgs.eval.scannet import (
     scannet_classes_path,
     write_scannet_labels,
 )
-from thgs.eval.segmenter import Regions, Segmenter
 from thgs.eval.three_dovs import (
     QUERY_SUBSTITUTIONS,
     SegmentationSet,
@@ -70,9 +69,7 @@ __all__ = [
     "LabelledObject",
     "PointLabels",
     "ProtocolResult",
-    "Regions",
     "SegmentationSet",
-    "Segmenter",
     "best_iou",
     "evaluate_3dovs",
     "evaluate_dataset",

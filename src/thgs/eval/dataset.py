@@ -41,8 +41,8 @@ from thgs.eval.evaluate import (
 )
 from thgs.eval.ground_truth import read_hierarchy
 from thgs.eval.scannet import read_scannet_labels
-from thgs.eval.segmenter import Segmenter
 from thgs.eval.three_dovs import read_3dovs_segmentations
+from thgs.query import FieldQuery
 from thgs.render import RasterConfig
 from thgs.scene import Cameras, Gaussians
 
@@ -175,7 +175,7 @@ class EvalReport:
 
 def evaluate_dataset(
     ground_truth: GroundTruth,
-    segmenter: Segmenter,
+    engine: FieldQuery,
     gaussians: Gaussians,
     cameras: Cameras | None,
     *,
@@ -188,7 +188,8 @@ def evaluate_dataset(
 
     Args:
         ground_truth: from :func:`find_ground_truth`.
-        segmenter: text → Gaussians (e.g. ``Segmenter(Regions.from_field(field), encoder)``).
+        engine: the query engine, text → Gaussians (``FieldQuery(field, encoder)``, or on any
+            :class:`thgs.query.Regions`).
         gaussians: the N Gaussians; cameras: the scene's cameras (needed by the 2D protocols).
         protocols: names from :data:`PROTOCOLS`.
         scannet_level: the level whose features classify ScanNet points.
@@ -226,18 +227,18 @@ def evaluate_dataset(
         assert cameras is not None or name in ("scannet", "hierarchy")
         if name == "lerf":
             results.append(
-                evaluate_lerf(segmenter, gaussians, cameras, frames, raster=raster, progress=step)
+                evaluate_lerf(engine, gaussians, cameras, frames, raster=raster, progress=step)
             )
         elif name == "lerf-langsplat":
             results.append(
                 evaluate_lerf_langsplat(
-                    segmenter, gaussians, cameras, frames, raster=raster, progress=step
+                    engine, gaussians, cameras, frames, raster=raster, progress=step
                 )
             )
         elif name == "lerf-opengaussian":
             results.append(
                 evaluate_lerf_opengaussian(
-                    segmenter,
+                    engine,
                     gaussians,
                     cameras,
                     frames,
@@ -250,20 +251,20 @@ def evaluate_dataset(
             segmentations = read_3dovs_segmentations(ground_truth.three_dovs)
             results.append(
                 evaluate_3dovs(
-                    segmenter, gaussians, cameras, segmentations, raster=raster, progress=step
+                    engine, gaussians, cameras, segmentations, raster=raster, progress=step
                 )
             )
         elif name == "scannet":
             labels = read_scannet_labels(ground_truth.scannet)
-            results.extend(evaluate_scannet(segmenter, gaussians, labels, level=scannet_level))
+            results.extend(evaluate_scannet(engine, gaussians, labels, level=scannet_level))
         else:
             hierarchy = read_hierarchy(ground_truth.hierarchy)
-            results.append(evaluate_hierarchy(np.asarray(segmenter.regions.labels), hierarchy))
+            results.append(evaluate_hierarchy(np.asarray(engine.regions.labels), hierarchy))
         seconds[name] = time.perf_counter() - started
         logger.info("%s: %.2f s", name, seconds[name])
     info = {
         "scene": ground_truth.scene_name,
-        "space": segmenter.regions.space,
+        "space": engine.regions.space,
         "gaussians": len(gaussians),
         "ground_truth": {
             key: None if value is None else str(value)

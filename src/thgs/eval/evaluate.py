@@ -1,7 +1,7 @@
 """The benchmark protocols run on a segmentation of one scene (design §6).
 
-Each ``evaluate_*`` function takes a :class:`thgs.eval.Segmenter` (text → Gaussians), the
-scene's Gaussians and cameras, and the benchmark's ground truth as the readers in
+Each ``evaluate_*`` function takes the query engine (:class:`thgs.query.FieldQuery`: text →
+Gaussians), the scene's Gaussians and cameras, and the benchmark's ground truth as the readers in
 :mod:`thgs.eval` return it, and gives a :class:`ProtocolResult`: the protocol's headline
 numbers and one item per scored (frame, prompt), (view, class) or class, so that every number
 can be traced. The per-image and per-point rules are in :mod:`thgs.eval.protocols`.
@@ -58,9 +58,9 @@ from thgs.eval.scannet import (
     SCANNET19_NAMES,
     PointLabels,
 )
-from thgs.eval.segmenter import Segmenter
 from thgs.eval.three_dovs import SegmentationSet, query_text
 from thgs.field_scene import find_view
+from thgs.query import FieldQuery
 from thgs.render import RasterConfig
 from thgs.scene import Cameras, Gaussians
 from thgs.views import relevancy_map, selection_masks
@@ -151,7 +151,7 @@ def _lerf_prompts(frame: FrameLabels, prompts: Sequence[str] | None) -> list[str
 
 
 def evaluate_lerf(
-    segmenter: Segmenter,
+    engine: FieldQuery,
     gaussians: Gaussians,
     cameras: Cameras,
     frames: Sequence[tuple[str, FrameLabels]],
@@ -165,8 +165,9 @@ def evaluate_lerf(
     """The THGS LERF-OVS protocol (``lerf``), or OpenGaussian's with ``mask_threshold`` 0.7.
 
     Args:
-        segmenter: text → selected Gaussians (its config is the selection rule).
-        gaussians: the N Gaussians the segmenter indexes.
+        engine: the query engine (:class:`thgs.query.FieldQuery`; its config is the selection
+            rule).
+        gaussians: the N Gaussians the engine indexes.
         cameras: the scene's cameras; frame ``stem`` is the camera of that image stem.
         frames: ``(stem, labels)`` per evaluated frame (:func:`read_lerf_frames`).
         protocol: the name recorded in the result.
@@ -183,7 +184,7 @@ def evaluate_lerf(
         if texts:
             camera = cameras.select([find_view(cameras, stem, f"label file {stem}.json")])
             height, width = int(camera.heights[0]), int(camera.widths[0])
-            selected = segmenter.select(texts)
+            selected = engine.selected(texts)
             masks = selection_masks(
                 gaussians, camera, selected, threshold=mask_threshold, config=raster
             )
@@ -206,7 +207,7 @@ def evaluate_lerf(
         {"miou": frame_mean(items, "iou"), "accuracy": frame_mean(items, "accuracy")},
         items,
         {
-            "selection": segmenter.config.mode,
+            "selection": engine.config.mode,
             "mask_threshold": mask_threshold,
             "prompts": None if prompts is None else list(prompts),
         },
@@ -214,7 +215,7 @@ def evaluate_lerf(
 
 
 def evaluate_lerf_langsplat(
-    segmenter: Segmenter,
+    engine: FieldQuery,
     gaussians: Gaussians,
     cameras: Cameras,
     frames: Sequence[tuple[str, FrameLabels]],
@@ -240,7 +241,9 @@ def evaluate_lerf_langsplat(
         texts = list(frame.categories)
         camera = cameras.select([find_view(cameras, stem, f"label file {stem}.json")])
         height, width = int(camera.heights[0]), int(camera.widths[0])
-        per_gaussian = np.concatenate([segmenter.relevancy(texts, k) for k in levels], axis=1)
+        per_gaussian = np.concatenate(
+            [engine.gaussian_relevancies(texts, k) for k in levels], axis=1
+        )
         maps = relevancy_map(gaussians, camera, per_gaussian, config=raster)  # [H, W, L·Q]
         maps = maps.reshape(height, width, len(levels), len(texts))
         sx, sy = width / frame.width, height / frame.height
@@ -278,7 +281,7 @@ def evaluate_lerf_langsplat(
 
 
 def evaluate_lerf_opengaussian(
-    segmenter: Segmenter,
+    engine: FieldQuery,
     gaussians: Gaussians,
     cameras: Cameras,
     frames: Sequence[tuple[str, FrameLabels]],
@@ -299,7 +302,7 @@ def evaluate_lerf_opengaussian(
     """
     prompts = OPENGAUSSIAN_LERF_PROMPTS.get(scene_name)
     result = evaluate_lerf(
-        segmenter,
+        engine,
         gaussians,
         cameras,
         frames,
@@ -325,7 +328,7 @@ def evaluate_lerf_opengaussian(
 
 
 def evaluate_3dovs(
-    segmenter: Segmenter,
+    engine: FieldQuery,
     gaussians: Gaussians,
     cameras: Cameras,
     segmentations: SegmentationSet,
@@ -354,7 +357,7 @@ def evaluate_3dovs(
         if classes:
             height, width = masks[classes[0]].shape
             camera = cameras.select([int(view)]).resized([width], [height])
-            selected = segmenter.select([query_text(name) for name in classes])
+            selected = engine.selected([query_text(name) for name in classes])
             predicted = selection_masks(
                 gaussians, camera, selected, threshold=mask_threshold, config=raster
             )
@@ -374,7 +377,7 @@ def evaluate_3dovs(
         "3dovs",
         {"miou": frame_mean(items, "iou"), "accuracy": frame_mean(items, "accuracy")},
         items,
-        {"selection": segmenter.config.mode, "mask_threshold": mask_threshold},
+        {"selection": engine.config.mode, "mask_threshold": mask_threshold},
     )
 
 
@@ -387,7 +390,7 @@ def scannet_subsets(labels: PointLabels) -> dict[str, tuple[int, ...]]:
 
 
 def evaluate_scannet(
-    segmenter: Segmenter,
+    engine: FieldQuery,
     gaussians: Gaussians,
     labels: PointLabels,
     *,
@@ -422,7 +425,7 @@ def evaluate_scannet(
         missing = [i for i in ids if i not in labels.class_names]
         if missing:
             raise InputError("ScanNet labels", f"subset {name}: classes {missing} have no name")
-        best = segmenter.classify([labels.class_names[i] for i in ids], level)
+        best = engine.classify([labels.class_names[i] for i in ids], level)
         predicted = np.where(best >= 0, np.asarray(ids)[np.maximum(best, 0)], -1)
         scores = scannet_scores(predicted, labels.labels, opacity, ids, min_opacity=min_opacity)
         items = [
