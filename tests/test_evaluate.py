@@ -27,7 +27,7 @@ from thgs.eval.evaluate import (
     frame_mean,
 )
 from thgs.eval.ground_truth import Hierarchy
-from thgs.eval.protocols import langsplat_level, langsplat_localized, langsplat_mask
+from thgs.eval.rules import langsplat_level, langsplat_localized, langsplat_mask
 from thgs.query import CANONICAL_PHRASES, FieldQuery, QueryConfig, Regions
 from thgs.scene import Cameras, Gaussians
 from thgs.views import relevancy_map, selection_masks

@@ -39,6 +39,7 @@ from thgs.demo import default_cache, open_synthetic_dataset, synthetic_dataset
 from thgs.device import resolve_device
 from thgs.errors import InputError, ThgsError
 from thgs.eval.dataset import evaluate_dataset, find_ground_truth
+from thgs.eval.protocols import get_protocol, protocol_names
 from thgs.export import write_json
 from thgs.lift import LiftConfig
 from thgs.pipeline import FieldConfig, build_levels, lift_scene
@@ -130,20 +131,6 @@ ORDERINGS: tuple[tuple[str, ...], ...] = (
     ("full", "no progressive merging", "instance level only"),
 )
 """The paper's Table 3 orderings (best first) on LERF-OVS mIoU."""
-
-_QUALITY = (
-    ("lerf", "miou"),
-    ("lerf", "accuracy"),
-    ("lerf-langsplat", "miou"),
-    ("lerf-langsplat", "localization"),
-    ("lerf-opengaussian", "miou"),
-    ("3dovs", "miou"),
-    ("scannet-all", "miou"),
-    ("hierarchy", "miou_subpart"),
-    ("hierarchy", "miou_part"),
-    ("hierarchy", "miou_object"),
-    ("hierarchy", "purity"),
-)
 
 
 def default_presets() -> tuple[str, ...]:
@@ -461,7 +448,8 @@ class BenchReport:
                 f"| {_stage_mean(group, ['features']):.2f} "
                 f"| {self.mean(preset, variant, 'peak_gib'):.2f} | {counts} |"
             )
-        keys = [f"{p} {m}" for p, m in _QUALITY if any(f"{p} {m}" in r.quality for r in self.runs)]
+        headline = [pair for name in protocol_names() for pair in get_protocol(name).headline]
+        keys = [f"{p} {m}" for p, m in headline if any(f"{p} {m}" in r.quality for r in self.runs)]
         lines += [
             "",
             "| preset | variant | " + " | ".join(keys) + " |",

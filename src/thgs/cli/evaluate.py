@@ -13,8 +13,6 @@ from thgs.errors import InputError
 
 __all__ = ["evaluate", "evaluate_mean"]
 
-Protocol = Literal["lerf", "lerf-langsplat", "lerf-opengaussian", "3dovs", "scannet", "hierarchy"]
-
 
 def _report_table(title: str, report) -> Table:
     table = Table(title=title, title_justify="left")
@@ -31,7 +29,7 @@ def evaluate(
     field: Annotated[Path, tyro.conf.arg(metavar="FIELD")],
     /,
     *,
-    protocol: tuple[Protocol, ...] = (),
+    protocol: tuple[str, ...] = (),
     labels: Path | None = None,
     segmentations: Path | None = None,
     scannet: Path | None = None,
@@ -52,9 +50,9 @@ def evaluate(
         dataset: the scene's dataset folder: label/ (LERF-OVS), segmentations/ (3D-OVS),
             scannet/*.labels.ply (ScanNet), ground_truth.safetensors (synthetic).
         field: the field file (thgs build).
-        protocol: lerf (THGS: 3D selection → rendered mask), lerf-langsplat (2D relevancy maps),
-            lerf-opengaussian (silhouette > 0.7), 3dovs, scannet, hierarchy (synthetic levels);
-            default: all with ground truth.
+        protocol: registered protocols (thgs.eval.protocols): lerf (THGS: 3D selection →
+            rendered mask), lerf-langsplat (2D relevancy maps), lerf-opengaussian (silhouette >
+            0.7), 3dovs, scannet, hierarchy (synthetic levels); default: all with ground truth.
         labels: the LERF-OVS label folder of this scene (e.g. label/teatime), if not in DATASET.
         segmentations: the 3D-OVS segmentations folder, if not DATASET/segmentations.
         scannet: the ScanNet label PLY (<scene>_vh_clean_2.labels.ply), if not in DATASET.
@@ -68,6 +66,7 @@ def evaluate(
     """
     from thgs._atomic import atomic_output
     from thgs.eval.dataset import evaluate_dataset, find_ground_truth
+    from thgs.eval.protocols import get_protocol, sources
     from thgs.export import write_json
     from thgs.field_scene import open_field_scene
     from thgs.pipeline import lifted_raster
@@ -75,14 +74,16 @@ def evaluate(
     from thgs.text import load_text_encoder
 
     setup_logging(verbose)
+    for name in protocol:
+        get_protocol(name)  # an unknown name stops here, before any loading
     ground_truth = find_ground_truth(
         dataset, lerf=labels, three_dovs=segmentations, scannet=scannet
     )
     if not protocol and not ground_truth.available():
+        places = "; ".join(source.describe for source in sources())
         raise InputError(
             dataset,
-            "holds no benchmark ground truth (label/*.json, segmentations/, "
-            "scannet/*.labels.ply, ground_truth.safetensors); name it with --labels, "
+            f"holds no benchmark ground truth ({places}); name it with --labels, "
             "--segmentations or --scannet",
         )
     semantic, loaded = open_field_scene(field, scene, device=device)

@@ -2,7 +2,6 @@
 (``thgs eval``; docs/eval.md)."""
 
 from thgs.eval.dataset import (
-    PROTOCOLS,
     EvalReport,
     GroundTruth,
     evaluate_dataset,
@@ -23,7 +22,8 @@ from thgs.eval.ground_truth import Hierarchy, read_hierarchy
 from thgs.eval.lerf_ovs import FrameLabels, LabelledObject, read_lerf_labels, write_lerf_labels
 from thgs.eval.metrics import best_iou, matched_miou, purity
 from thgs.eval.polygons import mask_to_polygons, rasterize_polygon
-from thgs.eval.protocols import (
+from thgs.eval.protocols import Protocol, protocol_names, register_protocol
+from thgs.eval.rules import (
     OPENGAUSSIAN_LERF_PROMPTS,
     OPENGAUSSIAN_THRESHOLD,
     ClassScores,
@@ -55,7 +55,6 @@ from thgs.eval.three_dovs import (
 __all__ = [
     "OPENGAUSSIAN_LERF_PROMPTS",
     "OPENGAUSSIAN_THRESHOLD",
-    "PROTOCOLS",
     "QUERY_SUBSTITUTIONS",
     "SCANNET10_IDS",
     "SCANNET15_IDS",
@@ -68,6 +67,7 @@ __all__ = [
     "Hierarchy",
     "LabelledObject",
     "PointLabels",
+    "Protocol",
     "ProtocolResult",
     "SegmentationSet",
     "best_iou",
@@ -87,6 +87,7 @@ __all__ = [
     "matched_miou",
     "mean_over_scenes",
     "pixel_accuracy",
+    "protocol_names",
     "purity",
     "query_text",
     "rasterize_polygon",
@@ -95,6 +96,7 @@ __all__ = [
     "read_lerf_frames",
     "read_lerf_labels",
     "read_scannet_labels",
+    "register_protocol",
     "scannet_classes_path",
     "scannet_scores",
     "write_3dovs_segmentations",

@@ -1,20 +1,23 @@
 """Evaluate a segmentation against every benchmark ground truth found in a dataset folder.
 
-:func:`find_ground_truth` looks for each benchmark's files in their usual places:
+:func:`find_ground_truth` asks every registered kind of ground truth
+(:mod:`thgs.eval.protocols`) where it lies in the folder:
 
 ==================== ============================================================================
-protocol             ground truth
+source (protocols)   ground truth
 ==================== ============================================================================
-``lerf`` (and        ``label/*.json`` (LERF-OVS, one file per frame; LangSplat's release keeps
+``lerf`` (``lerf``,  ``label/*.json`` (LERF-OVS, one file per frame; LangSplat's release keeps
 ``lerf-langsplat``,  them in ``label/<scene>/``: pass that folder with ``lerf=``), or the folder
 ``lerf-opengaussian``) itself when it holds ``frame_*.json``
-``3dovs``            ``segmentations/`` with ``classes.txt``
+``three_dovs``       ``segmentations/`` with ``classes.txt``
+(``3dovs``)
 ``scannet``          ``scannet/*.labels.ply`` or ``*_vh_clean_2.labels.ply`` in the folder
 ``hierarchy``        ``ground_truth.safetensors`` (synthetic scenes)
 ==================== ============================================================================
 
 A synthetic dataset (``thgs synth``) has all of them. :func:`evaluate_dataset` runs the
-requested protocols and returns an :class:`EvalReport` (JSON and a markdown table).
+requested protocols, in the registry's order, and returns an :class:`EvalReport` (JSON and a
+markdown table).
 """
 
 from __future__ import annotations
@@ -22,32 +25,20 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from thgs.errors import InputError
-from thgs.eval.evaluate import (
-    ProtocolResult,
-    evaluate_3dovs,
-    evaluate_hierarchy,
-    evaluate_lerf,
-    evaluate_lerf_langsplat,
-    evaluate_lerf_opengaussian,
-    evaluate_scannet,
-    read_lerf_frames,
-)
-from thgs.eval.ground_truth import read_hierarchy
-from thgs.eval.scannet import read_scannet_labels
-from thgs.eval.three_dovs import read_3dovs_segmentations
+from thgs.eval.evaluate import ProtocolResult
+from thgs.eval.protocols import EvalContext, get_protocol, protocol_names, source_names, sources
 from thgs.query import FieldQuery
 from thgs.render import RasterConfig
 from thgs.scene import Cameras, Gaussians
 
 __all__ = [
-    "PROTOCOLS",
     "EvalReport",
     "GroundTruth",
     "evaluate_dataset",
@@ -57,83 +48,58 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
-PROTOCOLS = ("lerf", "lerf-langsplat", "lerf-opengaussian", "3dovs", "scannet", "hierarchy")
-"""Every protocol :func:`evaluate_dataset` runs, in report order."""
-
-_NEEDS = {
-    "lerf": "lerf",
-    "lerf-langsplat": "lerf",
-    "lerf-opengaussian": "lerf",
-    "3dovs": "three_dovs",
-    "scannet": "scannet",
-    "hierarchy": "hierarchy",
-}
-
 
 @dataclass(frozen=True)
 class GroundTruth:
-    """Where each benchmark's ground truth of one scene is (None: not available).
+    """Where each kind of ground truth of one scene is.
 
     Attributes:
-        lerf: folder of LERF-OVS frame label JSONs.
-        three_dovs: 3D-OVS ``segmentations`` folder.
-        scannet: ScanNet-style label PLY.
-        hierarchy: synthetic ``ground_truth.safetensors``.
+        paths: source name (:func:`thgs.eval.protocols.source_names`, e.g. ``"lerf"``,
+            ``"three_dovs"``) → its file or folder; a kind the scene lacks is absent.
         scene_name: the scene's name (the folder's), for OpenGaussian's prompt lists.
     """
 
-    lerf: Path | None = None
-    three_dovs: Path | None = None
-    scannet: Path | None = None
-    hierarchy: Path | None = None
+    paths: Mapping[str, Path] = field(default_factory=dict)
     scene_name: str = ""
 
+    def path(self, source: str) -> Path | None:
+        """The path of ``source``'s ground truth, or None."""
+        return self.paths.get(source)
+
     def available(self) -> tuple[str, ...]:
-        """The protocols whose ground truth is present."""
-        return tuple(p for p in PROTOCOLS if getattr(self, _NEEDS[p]) is not None)
+        """The protocols whose ground truth is present, in report order."""
+        return tuple(name for name in protocol_names() if get_protocol(name).source in self.paths)
 
 
-def _lerf_folder(folder: Path) -> Path | None:
-    for candidate in (folder / "label", folder):
-        if candidate.is_dir() and any(candidate.glob("frame_*.json")):
-            return candidate
-    return None
-
-
-def find_ground_truth(
-    dataset: str | Path,
-    *,
-    lerf: str | Path | None = None,
-    three_dovs: str | Path | None = None,
-    scannet: str | Path | None = None,
-) -> GroundTruth:
+def find_ground_truth(dataset: str | Path, **given: str | Path | None) -> GroundTruth:
     """The ground truth in ``dataset`` (see the module table); explicit paths take precedence.
 
+    Args:
+        dataset: the scene's dataset folder.
+        given: a path per source name where it is not in the usual place, e.g.
+            ``lerf="lerf_ovs/label/teatime"``, ``three_dovs=…``, ``scannet=…`` (None: look).
+
     Raises:
-        InputError: ``dataset`` is not a folder, or an explicit path does not exist.
+        InputError: ``dataset`` is not a folder, an explicit path does not exist, or a keyword
+            names no source.
     """
     dataset = Path(dataset)
     if not dataset.is_dir():
         raise InputError(dataset, "dataset folder not found")
-    for name, given in (("lerf", lerf), ("three_dovs", three_dovs), ("scannet", scannet)):
-        if given is not None and not Path(given).exists():
-            raise InputError(given, f"not found (given for {name})")
-    if scannet is None:
-        candidates = sorted(dataset.glob("scannet/*.labels.ply")) + sorted(
-            dataset.glob("*_vh_clean_2.labels.ply")
+    unknown = sorted(set(given) - set(source_names()))
+    if unknown:
+        raise InputError(
+            "ground truth", f"unknown kind {unknown[0]!r}; known: {', '.join(source_names())}"
         )
-        scannet = candidates[0] if candidates else None
-    segmentations = dataset / "segmentations"
-    hierarchy = dataset / "ground_truth.safetensors"
-    return GroundTruth(
-        lerf=Path(lerf) if lerf is not None else _lerf_folder(dataset),
-        three_dovs=Path(three_dovs)
-        if three_dovs is not None
-        else (segmentations if (segmentations / "classes.txt").is_file() else None),
-        scannet=Path(scannet) if scannet is not None else None,
-        hierarchy=hierarchy if hierarchy.is_file() else None,
-        scene_name=dataset.resolve().name,
-    )
+    paths = {}
+    for source in sources():
+        explicit = given.get(source.name)
+        if explicit is not None and not Path(explicit).exists():
+            raise InputError(explicit, f"not found (given for {source.name})")
+        found = Path(explicit) if explicit is not None else source.find(dataset)
+        if found is not None:
+            paths[source.name] = found
+    return GroundTruth(paths, dataset.resolve().name)
 
 
 @dataclass(frozen=True)
@@ -191,7 +157,7 @@ def evaluate_dataset(
         engine: the query engine, text → Gaussians (``FieldQuery(field, encoder)``, or on any
             :class:`thgs.query.Regions`).
         gaussians: the N Gaussians; cameras: the scene's cameras (needed by the 2D protocols).
-        protocols: names from :data:`PROTOCOLS`.
+        protocols: registered protocol names (:func:`thgs.eval.protocols.protocol_names`).
         scannet_level: the level whose features classify ScanNet points.
         raster: how the 2D protocols render views: the settings the field was lifted with
             (:func:`thgs.pipeline.lifted_raster`), so that masks are rendered as they were lifted.
@@ -207,59 +173,36 @@ def evaluate_dataset(
         if not protocols:
             raise InputError("dataset", "holds no ground truth of any benchmark (see thgs eval)")
     for name in protocols:
-        if name not in PROTOCOLS:
-            raise InputError("protocol", f"unknown {name!r}; choose from {', '.join(PROTOCOLS)}")
+        protocol = get_protocol(name)
         if name not in available:
             raise InputError("protocol", f"{name}: its ground truth is not in the dataset")
-        if name not in ("scannet", "hierarchy") and cameras is None:
+        if protocol.needs_cameras and cameras is None:
             raise InputError("protocol", f"{name} renders views, but the scene has no cameras")
     results: list[ProtocolResult] = []
     seconds: dict[str, float] = {}
-    wants_lerf = any(name.startswith("lerf") for name in protocols)
-    frames = read_lerf_frames(ground_truth.lerf) if wants_lerf and ground_truth.lerf else []
-    for name in [p for p in PROTOCOLS if p in protocols]:
+    shared: dict = {}
+    for name in [p for p in protocol_names() if p in protocols]:
+        protocol = get_protocol(name)
         started = time.perf_counter()
 
         def step(done: int, total: int, name: str = name) -> None:
             if progress is not None:
                 progress(name, done, total)
 
-        assert cameras is not None or name in ("scannet", "hierarchy")
-        if name == "lerf":
-            results.append(
-                evaluate_lerf(engine, gaussians, cameras, frames, raster=raster, progress=step)
-            )
-        elif name == "lerf-langsplat":
-            results.append(
-                evaluate_lerf_langsplat(
-                    engine, gaussians, cameras, frames, raster=raster, progress=step
-                )
-            )
-        elif name == "lerf-opengaussian":
-            results.append(
-                evaluate_lerf_opengaussian(
-                    engine,
-                    gaussians,
-                    cameras,
-                    frames,
-                    scene_name=ground_truth.scene_name,
-                    raster=raster,
-                    progress=step,
-                )
-            )
-        elif name == "3dovs":
-            segmentations = read_3dovs_segmentations(ground_truth.three_dovs)
-            results.append(
-                evaluate_3dovs(
-                    engine, gaussians, cameras, segmentations, raster=raster, progress=step
-                )
-            )
-        elif name == "scannet":
-            labels = read_scannet_labels(ground_truth.scannet)
-            results.extend(evaluate_scannet(engine, gaussians, labels, level=scannet_level))
-        else:
-            hierarchy = read_hierarchy(ground_truth.hierarchy)
-            results.append(evaluate_hierarchy(np.asarray(engine.regions.labels), hierarchy))
+        path = ground_truth.path(protocol.source)
+        assert path is not None  # checked above
+        context = EvalContext(
+            engine,
+            gaussians,
+            cameras,
+            path,
+            scene_name=ground_truth.scene_name,
+            raster=raster,
+            options={"scannet_level": scannet_level},
+            progress=step,
+            shared=shared,
+        )
+        results.extend(protocol.evaluate(context))
         seconds[name] = time.perf_counter() - started
         logger.info("%s: %.2f s", name, seconds[name])
     info = {
@@ -267,13 +210,8 @@ def evaluate_dataset(
         "space": engine.regions.space,
         "gaussians": len(gaussians),
         "ground_truth": {
-            key: None if value is None else str(value)
-            for key, value in (
-                ("lerf", ground_truth.lerf),
-                ("3dovs", ground_truth.three_dovs),
-                ("scannet", ground_truth.scannet),
-                ("hierarchy", ground_truth.hierarchy),
-            )
+            source: None if ground_truth.path(source) is None else str(ground_truth.path(source))
+            for source in source_names()
         },
     }
     return EvalReport(tuple(results), seconds, info)

@@ -4,7 +4,7 @@ Each ``evaluate_*`` function takes the query engine (:class:`thgs.query.FieldQue
 Gaussians), the scene's Gaussians and cameras, and the benchmark's ground truth as the readers in
 :mod:`thgs.eval` return it, and gives a :class:`ProtocolResult`: the protocol's headline
 numbers and one item per scored (frame, prompt), (view, class) or class, so that every number
-can be traced. The per-image and per-point rules are in :mod:`thgs.eval.protocols`.
+can be traced. The per-image and per-point rules are in :mod:`thgs.eval.rules`.
 
 - ``lerf`` (THGS / P-3D): the reference selection (levels 2 and 3, top 3 each, best 3 kept)
   rendered as accumulated opacity and thresholded at 0.5, against the union of the category's
@@ -41,7 +41,7 @@ from thgs.errors import InputError
 from thgs.eval.ground_truth import HIERARCHY_LEVELS, Hierarchy
 from thgs.eval.lerf_ovs import FrameLabels, read_lerf_labels
 from thgs.eval.metrics import matched_miou, purity
-from thgs.eval.protocols import (
+from thgs.eval.rules import (
     OPENGAUSSIAN_LERF_PROMPTS,
     OPENGAUSSIAN_THRESHOLD,
     langsplat_level,
@@ -228,9 +228,9 @@ def evaluate_lerf_langsplat(
     """LangSplat's 2D LERF-OVS protocol on rendered relevancy maps.
 
     Per frame and prompt, each level's per-Gaussian relevancy is rendered into the view
-    (:func:`thgs.views.relevancy_map`); :func:`thgs.eval.protocols.langsplat_level` chooses a
-    level, :func:`~thgs.eval.protocols.langsplat_mask` makes its mask, and
-    :func:`~thgs.eval.protocols.langsplat_localized` checks the peak against the boxes.
+    (:func:`thgs.views.relevancy_map`); :func:`thgs.eval.rules.langsplat_level` chooses a
+    level, :func:`~thgs.eval.rules.langsplat_mask` makes its mask, and
+    :func:`~thgs.eval.rules.langsplat_localized` checks the peak against the boxes.
 
     Returns:
         metrics ``miou`` (flat mean over (frame, prompt)) and ``localization`` (share of

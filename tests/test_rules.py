@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from thgs.errors import InputError
-from thgs.eval.protocols import (
+from thgs.eval.rules import (
     OPENGAUSSIAN_LERF_PROMPTS,
     OPENGAUSSIAN_THRESHOLD,
     box_filter,
