@@ -104,17 +104,15 @@ def run_one(name: str, seed: int, args: argparse.Namespace) -> dict:
             "peak_gib": peak_gib,
             "stages": {stage: round(value, 3) for stage, value in field.timings.items()},
             "region_counts": list(field.region_counts),
-            "purity": round(purity(field.labels[:, 0], truth[:, 0]), 4),
-            "miou": [
-                round(matched_miou(field.labels[:, k], truth[:, k - 1]), 4) for k in (1, 2, 3)
-            ],
+            "purity": round(purity(field.labels[:, 0], truth[:, 1]), 4),
+            "miou": [round(matched_miou(field.labels[:, k], truth[:, k]), 4) for k in (1, 2, 3)],
             "feature_accuracy": [
                 round(
                     feature_accuracy(
                         field.labels[:, k],
-                        truth[:, k - 1],
+                        truth[:, k],
                         field.features[k - 1],
-                        scene.hierarchy.names[k - 1],
+                        scene.hierarchy.names[k],
                         encoder,
                     ),
                     4,

@@ -28,6 +28,7 @@ from thgs.eval.evaluate import (
 )
 from thgs.eval.ground_truth import Hierarchy
 from thgs.eval.rules import langsplat_level, langsplat_localized, langsplat_mask
+from thgs.hierarchy import RegionLevels
 from thgs.query import CANONICAL_PHRASES, FieldQuery, QueryConfig, Regions
 from thgs.scene import Cameras, Gaussians
 from thgs.views import relevancy_map, selection_masks
@@ -93,7 +94,7 @@ def _regions(seen: bool = True) -> Regions:
     flags = np.array([seen, seen])
     if not seen:
         features = np.zeros_like(features)
-    return Regions(labels, (features,) * 3, (flags,) * 3, SPACE)
+    return Regions(RegionLevels.from_labels(labels), (features,) * 3, (flags,) * 3, SPACE)
 
 
 @pytest.fixture(scope="module")
@@ -229,7 +230,7 @@ def test_3dovs_queries_wood_wall_as_wood_at_the_masks_resolution(scene):
     regions = _regions()
     # "wood" names the right patch here; "wood wall" is not in the encoder's table at all
     features = np.stack([_unit(1, 0, 0, 0), _unit(0, 0, 1, 0)]).astype(np.float32)
-    regions = Regions(regions.labels, (features,) * 3, regions.seen, SPACE)
+    regions = Regions(regions.levels, (features,) * 3, regions.seen, SPACE)
     result = evaluate_3dovs(
         FieldQuery(regions, encoder, QueryConfig(mode="level")), gaussians, cameras, segmentations
     )
@@ -265,14 +266,15 @@ def test_scannet_classifies_by_region_feature(scene):
 
 
 def test_hierarchy_scores_levels_against_ground_truth():
-    truth = np.array([[0, 0, 0], [1, 0, 0], [2, 1, 1], [3, 1, 1]], dtype=np.int32)
-    hierarchy = Hierarchy(
-        truth,
-        (("a", "b", "c", "d"), ("ab", "cd"), ("x", "y")),
+    hierarchy = Hierarchy.from_subparts(
+        np.arange(4),
         np.array([0, 0, 1, 1], dtype=np.int32),
         np.array([0, 1], dtype=np.int32),
+        (("a", "b", "c", "d"), ("ab", "cd"), ("x", "y")),
     )
-    exact = np.concatenate([truth[:, :1], truth], axis=1)
+    truth = np.array([[0, 0, 0, 0], [1, 1, 0, 0], [2, 2, 1, 1], [3, 3, 1, 1]], dtype=np.int32)
+    np.testing.assert_array_equal(hierarchy.labels, truth)
+    exact = RegionLevels.from_labels(truth)
     result = evaluate_hierarchy(exact, hierarchy)
     assert result.metrics == {
         "miou_subpart": 1.0,
@@ -281,11 +283,15 @@ def test_hierarchy_scores_levels_against_ground_truth():
         "purity": 1.0,
     }
     # level 3 as one region: each object scores 2/4
-    coarse = exact.copy()
+    coarse = truth.copy()
     coarse[:, 3] = 0
-    assert evaluate_hierarchy(coarse, hierarchy).metrics["miou_object"] == 0.5
-    with pytest.raises(InputError, match=r"\[4, 4\]"):
-        evaluate_hierarchy(exact[:, :3], hierarchy)
+    assert (
+        evaluate_hierarchy(RegionLevels.from_labels(coarse), hierarchy).metrics["miou_object"]
+        == 0.5
+    )
+    fewer, _ = exact.select(np.arange(3))
+    with pytest.raises(InputError, match="hierarchy's 4 Gaussians, got 3"):
+        evaluate_hierarchy(fewer, hierarchy)
 
 
 def test_frame_mean_weighs_frames_equally():

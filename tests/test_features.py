@@ -440,7 +440,7 @@ def plane_cosines(plane_lifted, guidance, mode, level):
     """Cosine of each ground-truth region's feature to its name's embedding, and all of them."""
     scene, hierarchy, _, lifted = plane_lifted
     features, seen = region_features(
-        hierarchy.labels[:, level - 1],
+        hierarchy.labels[:, level],
         level,
         lifted,
         guidance,
@@ -448,7 +448,7 @@ def plane_cosines(plane_lifted, guidance, mode, level):
         gaussians=scene.gaussians,
         cameras=scene.cameras,
     )
-    names = _FakeEncoder().encode(list(hierarchy.names[level - 1]))
+    names = _FakeEncoder().encode(list(hierarchy.names[level]))
     assert seen.all() and features.shape == names.shape
     return np.sum(features * names, axis=1), features @ names.T
 

@@ -19,6 +19,7 @@ from safetensors.numpy import save
 from conftest import random_gaussians
 from thgs import InputError
 from thgs.field import FORMAT_VERSION, SemanticField, load_field, save_field, scene_fingerprint
+from thgs.hierarchy import RegionLevels
 
 FINGERPRINT = "sha256:" + "ab" * 32
 
@@ -27,14 +28,24 @@ def mug_field() -> SemanticField:
     """The worked example of docs/field.md: 6 Gaussians, 4 superpoints → 3 sub-parts (rim, wall,
     handle) → 2 parts (body, handle) → 1 object (mug); the handle sub-part was never seen."""
     return SemanticField(
-        labels=np.array(
-            [[0, 0, 0, 0], [0, 0, 0, 0], [1, 1, 0, 0], [2, 1, 0, 0], [3, 2, 1, 0], [3, 2, 1, 0]],
-            dtype=np.int32,
-        ),
-        parents=(
-            np.array([0, 1, 1, 2], dtype=np.int32),
-            np.array([0, 0, 1], dtype=np.int32),
-            np.array([0, 0], dtype=np.int32),
+        levels=RegionLevels(
+            labels=np.array(
+                [
+                    [0, 0, 0, 0],
+                    [0, 0, 0, 0],
+                    [1, 1, 0, 0],
+                    [2, 1, 0, 0],
+                    [3, 2, 1, 0],
+                    [3, 2, 1, 0],
+                ],
+                dtype=np.int32,
+            ),
+            parents=(
+                np.array([0, 1, 1, 2], dtype=np.int32),
+                np.array([0, 0, 1], dtype=np.int32),
+                np.array([0, 0], dtype=np.int32),
+            ),
+            counts=(4, 3, 2, 1),
         ),
         features=(
             np.array([[1, 0, 0], [0, 1, 0], [0, 0, 0]], dtype=np.float32),
@@ -50,16 +61,24 @@ def mug_field() -> SemanticField:
 
 
 def replace_level(field: SemanticField, name: str, k: int, value: np.ndarray) -> SemanticField:
-    """``field`` with ``getattr(field, name)[k - 1]`` (levels 1..3) replaced by ``value``."""
+    """``field`` with ``getattr(field, name)[k - 1]`` (levels 1..3) replaced by ``value``
+    (``parents`` in the field's levels)."""
     arrays = list(getattr(field, name))
     arrays[k - 1] = value
+    if name == "parents":
+        return with_levels(field, parents=tuple(arrays))
     return dataclasses.replace(field, **{name: tuple(arrays)})
+
+
+def with_levels(field: SemanticField, **changes) -> SemanticField:
+    """``field`` with its levels' attributes replaced."""
+    return dataclasses.replace(field, levels=dataclasses.replace(field.levels, **changes))
 
 
 def with_labels(field: SemanticField, edit: Callable[[np.ndarray], None]) -> SemanticField:
     labels = field.labels.copy()
     edit(labels)
-    return dataclasses.replace(field, labels=labels)
+    return with_levels(field, labels=labels)
 
 
 def write_raw(path: Path, tensors: dict[str, np.ndarray], header: dict | None) -> None:
@@ -156,15 +175,15 @@ def test_accessors_refuse_bad_levels_and_regions(call, message):
 
 CHECK_FAILURES = {
     "labels dtype": (
-        lambda f: dataclasses.replace(f, labels=f.labels.astype(np.int64)),
+        lambda f: with_levels(f, labels=f.labels.astype(np.int64)),
         "labels must have dtype int32, got int64 array of shape [6, 4]",
     ),
     "labels shape": (
-        lambda f: dataclasses.replace(f, labels=f.labels[:, :3].copy()),
+        lambda f: with_levels(f, labels=f.labels[:, :3].copy()),
         "labels must be [N, 4], got [6, 3]",
     ),
     "parents not a tuple": (
-        lambda f: dataclasses.replace(f, parents=list(f.parents)),
+        lambda f: with_levels(f, parents=list(f.parents)),
         "parents must be a tuple of 3 arrays",
     ),
     "seen has two levels": (
@@ -193,11 +212,27 @@ CHECK_FAILURES = {
     ),
     "level-0 parents too short": (
         lambda f: replace_level(f, "parents", 1, f.parents[0][:3]),
+        "parents[0] has 3 entries, level 0 has 4 regions",
+    ),
+    "level-0 count too small": (
+        lambda f: with_levels(f, counts=(3, 3, 2, 1), parents=(f.parents[0][:3], *f.parents[1:])),
         "labels[:, 0] must be in 0..2, Gaussian 4 has 3",
+    ),
+    "levels do not nest": (
+        lambda f: with_levels(f, parents=None),
+        "levels must nest (parents), a field's levels always do",
+    ),
+    "levels not RegionLevels": (
+        lambda f: dataclasses.replace(f, levels=f.labels),
+        "levels must be RegionLevels, got int32 array of shape [6, 4]",
     ),
     "seen too long": (
         lambda f: replace_level(f, "seen", 2, np.ones(3, dtype=bool)),
-        "seen[1] has 3 entries, level 2 has 2",
+        "seen[1] has 3 rows, level 2 has 2 regions",
+    ),
+    "features short": (
+        lambda f: replace_level(f, "features", 1, f.features[0][:2]),
+        "features[0] has 2 rows, level 1 has 3 regions",
     ),
     "widths differ": (
         lambda f: replace_level(f, "features", 3, np.array([[0, 0, 0, 1]], dtype=np.float32)),
@@ -311,8 +346,9 @@ def test_check_accepts_unit_rows_within_tolerance_and_an_empty_field():
     nearly = field.features[1] * np.float32(1 + 5e-5)
     assert replace_level(field, "features", 2, nearly).check() is not None
     empty = SemanticField(
-        labels=np.zeros((0, 4), np.int32),
-        parents=tuple(np.zeros(0, np.int32) for _ in range(3)),
+        levels=RegionLevels(
+            np.zeros((0, 4), np.int32), tuple(np.zeros(0, np.int32) for _ in range(3)), (0,) * 4
+        ),
         features=tuple(np.zeros((0, 5), np.float32) for _ in range(3)),
         seen=tuple(np.zeros(0, bool) for _ in range(3)),
         space="x",

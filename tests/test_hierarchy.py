@@ -253,19 +253,21 @@ def _views(truth, count=4, offset=100, max_weight=0.5):
 
 def test_clean_labels_recover_the_hierarchy_and_levels_nest():
     gaussians, superpoints, truth = _blocks_scene()
-    merged = merge_levels(gaussians, superpoints, _views(truth), MergeConfig())
+    merged = merge_levels(gaussians, superpoints, _views(truth), MergeConfig()).levels
     assert merged.counts == (16, 8, 4, 2)
     for k in (1, 2, 3):
         np.testing.assert_array_equal(merged.labels[:, k], truth[:, k - 1])
         parent = merged.parents[k - 1]
         np.testing.assert_array_equal(merged.labels[:, k], parent[merged.labels[:, k - 1]])
-    instance = merge_levels(gaussians, superpoints, _views(truth), MergeConfig(mode="instance"))
+    instance = merge_levels(
+        gaussians, superpoints, _views(truth), MergeConfig(mode="instance")
+    ).levels
     for k in (1, 2, 3):
         np.testing.assert_array_equal(instance.labels[:, k], truth[:, 2])
     independent = merge_levels(
         gaussians, superpoints, _views(truth), MergeConfig(mode="independent")
-    )
-    assert independent.parents is None
+    ).levels
+    assert independent.parents is None and not independent.nested
     np.testing.assert_array_equal(independent.labels[:, 2], truth[:, 1])
 
 
@@ -281,10 +283,10 @@ def test_hidden_labels_do_not_vote():
         np.full(n, 0.01, np.float32),
     )
     views = [*views, *[occluded] * 12]
-    ours = merge_levels(gaussians, superpoints, views, MergeConfig())
+    ours = merge_levels(gaussians, superpoints, views, MergeConfig()).levels
     assert ours.counts == (16, 8, 4, 2)
     # the reference counts them: across objects A = 12 / 16 = 0.75 ≥ 0.7, one object remains
-    reference = merge_levels(gaussians, superpoints, views, MergeConfig().as_reference())
+    reference = merge_levels(gaussians, superpoints, views, MergeConfig().as_reference()).levels
     assert reference.counts[3] == 1
 
 
@@ -296,10 +298,12 @@ def test_faint_labels_weigh_less():
     gaussians, superpoints, truth = _blocks_scene()
     split = np.repeat(superpoints[:, None], 3, axis=1) + 1000
     views = [*_views(truth, max_weight=0.9), *_views(split, count=8, max_weight=0.1)]
-    ours = merge_levels(gaussians, superpoints, views, MergeConfig())
+    ours = merge_levels(gaussians, superpoints, views, MergeConfig()).levels
     for k in (1, 2, 3):
         np.testing.assert_array_equal(ours.labels[:, k], truth[:, k - 1])
-    unweighted = merge_levels(gaussians, superpoints, views, MergeConfig(visibility_power=0.0))
+    unweighted = merge_levels(
+        gaussians, superpoints, views, MergeConfig(visibility_power=0.0)
+    ).levels
     assert unweighted.counts[1] == 16
 
 
@@ -317,9 +321,9 @@ def test_rounds_merge_regions_whose_pooled_evidence_agrees():
     views.append(
         ViewLift(seen, labels, np.full(seen.size, 2.0, np.float32), np.full(seen.size, 0.5))
     )
-    ours = merge_levels(gaussians, superpoints, views, MergeConfig())
+    ours = merge_levels(gaussians, superpoints, views, MergeConfig()).levels
     assert ours.counts[1] == 1
-    single = merge_levels(gaussians, superpoints, views, MergeConfig(rounds=1))
+    single = merge_levels(gaussians, superpoints, views, MergeConfig(rounds=1)).levels
     assert single.counts[1] == 2
     np.testing.assert_array_equal(single.labels[:, 1], (superpoints > 0).astype(np.int32))
 
@@ -328,10 +332,10 @@ def test_small_regions_join_their_most_similar_neighbour():
     gaussians, superpoints, truth = _blocks_scene()
     truth = truth.copy()
     truth[superpoints == 15, :] = [99, 99, 99]  # the last superpoint is its own object
-    merged = merge_levels(gaussians, superpoints, _views(truth), MergeConfig())
+    merged = merge_levels(gaussians, superpoints, _views(truth), MergeConfig()).levels
     assert merged.counts[3] == 3  # 50 Gaussians ≥ 20: kept
     absorbing = MergeConfig(min_region_gaussians=60)
-    merged = merge_levels(gaussians, superpoints, _views(truth), absorbing)
+    merged = merge_levels(gaussians, superpoints, _views(truth), absorbing).levels
     assert merged.counts[3] == 2  # absorbed into its only touching region
     np.testing.assert_array_equal(merged.labels[superpoints == 15, 3], 1)
 

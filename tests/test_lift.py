@@ -143,7 +143,7 @@ def test_clean_masks_lift_onto_their_ground_truth(synthetic_view, method):
         labels = lifted.labels[:, level].numpy()
         labelled = (labels >= 0) & visible
         assigned = np.array([nodes.get(int(m), -2) for m in labels[labelled]])
-        agree = assigned == truth[labelled, level - 1]
+        agree = assigned == truth[labelled, level]
         assert agree.mean() > 0.99
         assert (labels >= 0)[visible].mean() > 0.98
 

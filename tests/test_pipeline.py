@@ -67,12 +67,9 @@ def plane_scene(side: int = 80, views: int = 8) -> tuple[Posed, Hierarchy]:
     gaussians, x, y = flat_square(side)
     region = (x > 0.1 * np.sin(6 * y)).astype(np.int32) + 2 * (y > 0.05).astype(np.int32)
     names = tuple(f"region {i}" for i in range(4))
-    hierarchy = Hierarchy(
-        labels=np.stack([region, region, np.zeros(x.size, np.int32)], axis=1),
-        names=(names, names, ("plane",)),
-        subpart_parent=np.arange(4, dtype=np.int32),
-        part_parent=np.zeros(4, dtype=np.int32),
-    ).check()
+    hierarchy = Hierarchy.from_subparts(
+        region, np.arange(4), np.zeros(4, np.int32), (names, names, ("plane",))
+    )
     return Posed(gaussians, ring_cameras(views, 0.6, 200.0)), hierarchy
 
 
@@ -100,7 +97,7 @@ def test_reweighting_raises_purity_on_noisy_guidance(plane, seed):
     # reweighting 0.834 (it ignores the masks), ours and the reference's 0.996–1.000
     scene, hierarchy = plane
     guidance = oracle_views(scene, hierarchy, OracleConfig(seed=seed))
-    truth = hierarchy.labels[:, 0]
+    truth = hierarchy.labels[:, 1]
     config = SuperpointConfig()
     none = replace(config, reweight=ReweightConfig(mode="none"))
     plain, _ = partition_scene(scene, guidance, none)
@@ -132,8 +129,8 @@ def test_synthetic_scene_superpoints_are_pure_and_coarse():
     synthetic = generate_scene(preset("synth-small", gaussians=20_000, views=12))
     guidance = oracle_views(synthetic, synthetic.hierarchy, OracleConfig())
     labels, report = partition_scene(synthetic, guidance)
-    assert purity(labels, synthetic.hierarchy.labels[:, 0]) >= 0.95
-    assert purity(labels, synthetic.hierarchy.labels[:, 2]) >= 0.99
+    assert purity(labels, synthetic.hierarchy.labels[:, 1]) >= 0.95
+    assert purity(labels, synthetic.hierarchy.labels[:, 3]) >= 0.99
     assert report.superpoints * 50 <= len(synthetic.gaussians)
 
 
@@ -166,7 +163,7 @@ def test_fewer_gaussians_than_neighbours(plane):
     scene, hierarchy = plane
     few = np.arange(0, len(scene.gaussians), len(scene.gaussians) // 5)[:5]
     small = Posed(scene.gaussians.select(torch.from_numpy(few)), scene.cameras)
-    guidance = oracle_views(small, replace(hierarchy, labels=hierarchy.labels[few]), OracleConfig())
+    guidance = oracle_views(small, hierarchy.select(few), OracleConfig())
     labels, report = partition_scene(small, guidance)
     assert labels.shape == (5,) and report.superpoints == 1  # under min_comp_weight: one piece
 

@@ -3,6 +3,7 @@ hand-built field."""
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import replace
 
@@ -11,6 +12,7 @@ import pytest
 
 from thgs.errors import InputError
 from thgs.field import SemanticField
+from thgs.hierarchy import RegionLevels
 from thgs.query import (
     CANONICAL_PHRASES,
     FieldQuery,
@@ -20,6 +22,7 @@ from thgs.query import (
     relevancy,
     select,
     select_reference,
+    small_region_size,
 )
 from thgs.text import MINILM_SPACE, SpaceMismatchError
 
@@ -74,9 +77,8 @@ def _field() -> SemanticField:
     objects = np.stack([_unit(1, 0.1, 0), _unit(0, 1, 0)])
     features = (parts.astype(np.float32), parts.astype(np.float32), objects.astype(np.float32))
     seen = (np.array([1, 1, 1, 0], bool), np.array([1, 1, 1, 0], bool), np.ones(2, bool))
-    return SemanticField(
-        labels, parents, features, seen, "test", "sha256:" + "0" * 64, {}, {}
-    ).check()
+    levels = RegionLevels(labels, parents, (8, 4, 4, 2))
+    return SemanticField(levels, features, seen, "test", "sha256:" + "0" * 64, {}, {}).check()
 
 
 def test_reference_selection_pools_top_regions_of_levels_two_and_three():
@@ -197,7 +199,8 @@ def test_one_engine_on_a_field_or_on_regions_that_need_not_nest():
     # levels that do not nest: level 2 pairs Gaussians across the two objects
     labels = field.labels.copy()
     labels[:, 2] = np.array([0, 1, 2, 3, 0, 1, 2, 3])
-    crossed = FieldQuery(Regions(labels, field.features, field.seen, "test"), _encoder())
+    crossed_levels = RegionLevels.from_labels(labels, nested=False)
+    crossed = FieldQuery(Regions(crossed_levels, field.features, field.seen, "test"), _encoder())
     masks = crossed.selected(texts)
     for q, text in enumerate(texts):  # brute force: the union of the chosen regions' members
         chosen = crossed.select([text])[0].regions
@@ -209,9 +212,9 @@ def test_one_engine_on_a_field_or_on_regions_that_need_not_nest():
     np.testing.assert_allclose(scores, crossed.relevancy(texts, 2).T[labels[:, 2]])
     # classify: the nearest text by cosine per Gaussian's region, −1 where unseen
     np.testing.assert_array_equal(crossed.classify(["red", "green"], 2), [0, 0, 1, -1] * 2)
-    with pytest.raises(InputError, match="level: must be 1, 2 or 3, got 0"):
+    with pytest.raises(InputError, match=r"level must be in 1\.\.3 here, got 0"):
         crossed.classify(["red"], 0)
-    with pytest.raises(InputError, match=r"level 2 has regions 0\.\.3, got 4"):
+    with pytest.raises(InputError, match=r"level 2 has regions 0\.\.3, got region 4"):
         crossed.gaussians_of([(2, 4)])
 
 
@@ -253,3 +256,15 @@ def test_queries_in_another_space_are_refused():
 def test_default_thresholds():
     assert default_threshold(MINILM_SPACE) == 0.8
     assert default_threshold("laion/CLIP-ViT-B-16-laion2B-s34B-b88K") == 0.5
+
+
+def test_small_region_size_reads_the_recorded_merge_settings(caplog):
+    field = _field()
+    assert small_region_size(field) == 0  # no merge settings recorded
+    recorded = replace(field, config={"merge": {"min_region_gaussians": 7}})
+    assert small_region_size(recorded) == 7
+    assert FieldQuery(recorded, _encoder()).min_gaussians == 7
+    unreadable = replace(field, config={"merge": {"min_region_gaussians": "7"}})
+    with caplog.at_level(logging.WARNING, logger="thgs.query"):
+        assert small_region_size(unreadable) == 0
+    assert "field config: merge" in caplog.text and "min_region_gaussians" in caplog.text

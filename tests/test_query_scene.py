@@ -61,7 +61,7 @@ def _max_ids(scene: Posed, view: int) -> np.ndarray:
 @pytest.fixture(scope="module")
 def named():
     scene, hierarchy = tiled_scene(views=10)
-    hierarchy = replace(hierarchy, names=NAMES).check()
+    hierarchy = replace(hierarchy, names=dict(zip((1, 2, 3), NAMES))).check()
     encoder = load_text_encoder(MINILM_SPACE)
     clean = OracleConfig(severity=0.0, feature_noise=0.0)
     train = [i for i in range(len(scene.cameras)) if i not in HELD_OUT]
@@ -81,7 +81,7 @@ def _iou(a: np.ndarray, b: np.ndarray) -> float:
 @pytest.mark.parametrize("mode", ["reference", "level", "threshold"])
 def test_object_names_select_exactly_their_object(named, mode):
     _, hierarchy, _, fq = named
-    names = hierarchy.level_names(2)
+    names = hierarchy.level_names(3)
     for text in NAMES[2]:
         selection = fq.select([text], QueryConfig(mode=mode, level=3))[0]
         assert _iou(selection.gaussians, names == text) >= 0.95, (text, selection.regions)
@@ -96,7 +96,7 @@ def test_object_masks_match_ground_truth_in_held_out_views(named):
         masks = selection_masks(scene.gaussians, camera, selected)
         ids = _max_ids(scene, view)
         for q, obj in enumerate(range(len(NAMES[2]))):
-            truth = (ids >= 0) & (hierarchy.labels[np.maximum(ids, 0), 2] == obj)
+            truth = (ids >= 0) & (hierarchy.labels[np.maximum(ids, 0), 3] == obj)
             assert truth.sum() > 500
             assert _iou(masks[..., q], truth) >= 0.9, (view, NAMES[2][obj])
 
@@ -104,7 +104,7 @@ def test_object_masks_match_ground_truth_in_held_out_views(named):
 def test_part_and_subpart_names_select_their_region(named):
     _, hierarchy, _, fq = named
     for level, names in ((2, NAMES[1]), (1, NAMES[0])):
-        truth = hierarchy.level_names(level - 1)
+        truth = hierarchy.level_names(level)
         selections = fq.select(list(names), fq.with_config(mode="level", level=level))
         for text, selection in zip(names, selections):
             assert _iou(selection.gaussians, truth == text) >= 0.95, (text, selection.regions)
@@ -127,7 +127,7 @@ def test_picking_a_subpart_climbs_to_its_part_and_object(named):
     rng = np.random.default_rng(0)
     for subpart in range(len(NAMES[0])):
         # a pixel well inside the sub-part: its Gaussian and its 4 neighbours' are all in it
-        inside = (ids >= 0) & (hierarchy.labels[np.maximum(ids, 0), 0] == subpart)
+        inside = (ids >= 0) & (hierarchy.labels[np.maximum(ids, 0), 1] == subpart)
         core = inside.copy()
         core[1:-1, 1:-1] &= inside[:-2, 1:-1] & inside[2:, 1:-1] & inside[1:-1, :-2]
         core[1:-1, 1:-1] &= inside[1:-1, 2:]
@@ -139,7 +139,7 @@ def test_picking_a_subpart_climbs_to_its_part_and_object(named):
         part, obj = subpart // 2, subpart // 4
         for level, truth in ((1, subpart), (2, part), (3, obj)):
             members = field.labels[:, level] == picked.region(level)
-            assert _iou(members, hierarchy.labels[:, level - 1] == truth) >= 0.95, (subpart, level)
+            assert _iou(members, hierarchy.labels[:, level] == truth) >= 0.95, (subpart, level)
         # navigation: the picked sub-part's parent is the picked part, and so on
         assert field.parent(1, picked.region(1)) == picked.region(2)
         assert field.parent(2, picked.region(2)) == picked.region(3)

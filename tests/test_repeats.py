@@ -11,7 +11,7 @@ import torch
 
 from thgs import Gaussians
 from thgs.errors import InputError
-from thgs.hierarchy import MergedLevels, RepeatConfig, group_repeated_parts, parents_of
+from thgs.hierarchy import RegionLevels, RepeatConfig, group_repeated_parts
 from thgs.hierarchy.repeats import repeated_part_pairs
 
 
@@ -78,10 +78,9 @@ def table() -> tuple[Gaussians, np.ndarray]:
     return gaussians_at(np.concatenate([top, *legs])), units
 
 
-def levels_of(units: np.ndarray, objects: np.ndarray) -> MergedLevels:
+def levels_of(units: np.ndarray, objects: np.ndarray) -> RegionLevels:
     """Levels 0–2 = ``units``; level 3 = ``objects[unit]``."""
-    labels = np.stack([units, units, units, objects[units]], axis=1).astype(np.int32)
-    return MergedLevels(labels=labels, parents=parents_of(labels), seconds={})
+    return RegionLevels.from_labels(np.stack([units, units, units, objects[units]], axis=1))
 
 
 def unit(*rows) -> np.ndarray:
@@ -149,9 +148,9 @@ def test_bad_input_is_named():
     merged = levels_of(units, np.zeros(5, dtype=np.int64))
     with pytest.raises(InputError, match="part_features"):
         group_repeated_parts(gaussians, merged, np.zeros((4, 3)))
-    with pytest.raises(InputError, match="merged"):
+    with pytest.raises(InputError, match="levels: must be nested levels of the 184"):
         group_repeated_parts(gaussians, replace(merged, parents=None), np.zeros((5, 3)))
-    with pytest.raises(InputError, match="merged"):
+    with pytest.raises(InputError, match="levels: must be nested levels of the 3"):
         group_repeated_parts(gaussians_at(np.zeros((3, 3))), merged, np.zeros((5, 3)))
     for fields in ({"similarity": 0.0}, {"similarity": 1.5}, {"margin": -0.1}, {"neighbors": 1}):
         with pytest.raises(InputError, match="RepeatConfig"):

@@ -125,20 +125,22 @@ def test_scene_ground_truth_is_nested_and_covers_every_node(scene):
     hierarchy = scene.hierarchy
     assert len(hierarchy) == len(scene.gaussians) == TINY.gaussians
     labels = hierarchy.labels
-    floaters = labels[:, 0] < 0
+    floaters = labels[:, 1] < 0
     assert floaters.sum() == round(TINY.floaters * TINY.gaussians)
     assert (labels[floaters] == -1).all()
     kept = labels[~floaters]
-    np.testing.assert_array_equal(hierarchy.subpart_parent[kept[:, 0]], kept[:, 1])
-    np.testing.assert_array_equal(hierarchy.part_parent[kept[:, 1]], kept[:, 2])
-    for level in range(3):  # every node has Gaussians
+    np.testing.assert_array_equal(kept[:, 0], kept[:, 1])  # level 0 repeats the sub-parts
+    parents = hierarchy.levels.parents
+    np.testing.assert_array_equal(parents[1][kept[:, 1]], kept[:, 2])
+    np.testing.assert_array_equal(parents[2][kept[:, 2]], kept[:, 3])
+    for level in (1, 2, 3):  # every node has Gaussians
         counts = np.bincount(kept[:, level], minlength=len(hierarchy.names[level]))
         assert counts.min() >= 30
-    objects = hierarchy.names[2]
+    objects = hierarchy.names[3]
     assert objects[:3] == ("floor", "table", "chair")
     assert len(objects) == 3 + TINY.table_objects
     assert len(set(objects[3:])) >= 4
-    assert "mug handle" in hierarchy.names[1] or "mug" not in objects
+    assert "mug handle" in hierarchy.names[2] or "mug" not in objects
 
 
 def test_scene_gaussians_sit_on_their_surfaces_like_trained_ones(scene):
@@ -148,12 +150,12 @@ def test_scene_gaussians_sit_on_their_surfaces_like_trained_ones(scene):
     assert 0.7 < float((opacity > 0.7).float().mean()) < 0.95
     means = gaussians.means.double()
     labels = scene.hierarchy.labels
-    floor = np.flatnonzero(labels[:, 2] == 0)
+    floor = np.flatnonzero(labels[:, 3] == 0)
     np.testing.assert_allclose(means[floor, 2].numpy(), 0.0, atol=1e-6)
     normals = gaussians.surface_normals()[floor].double()
     np.testing.assert_allclose(normals[:, 2].abs().numpy(), 1.0, atol=1e-5)
-    top = scene.hierarchy.names[1].index("table top")
-    on_top = np.flatnonzero(labels[:, 1] == top)
+    top = scene.hierarchy.names[2].index("table top")
+    on_top = np.flatnonzero(labels[:, 2] == top)
     assert float(means[on_top, 2].max()) == pytest.approx(0.75, abs=1e-6)
     # colours jitter around the palette colour (σ = 0.03 per channel)
     colors = gaussians.dc_colors()[floor]
@@ -174,7 +176,7 @@ def test_3dgs_scenes_are_flat_ellipsoids():
     scene = generate_scene(replace(TINY, kind="3dgs", views=1))
     scales = scene.gaussians.activated_scales()
     assert scales.shape[1] == 3
-    surface = scene.hierarchy.labels[:, 0] >= 0
+    surface = scene.hierarchy.labels[:, 1] >= 0
     np.testing.assert_allclose((scales[surface, 2] / scales[surface, 0]).numpy(), 0.05, rtol=1e-4)
 
 
@@ -238,7 +240,7 @@ def _mask_sets(masks: LevelMasks) -> list[frozenset[int]]:
 def test_ground_truth_maps_follow_the_max_weight_gaussian(scene, view):
     max_id, maps = view
     y, x = np.nonzero(max_id >= 0)
-    np.testing.assert_array_equal(maps[:, y, x], scene.hierarchy.labels[max_id[y, x]].T)
+    np.testing.assert_array_equal(maps[:, y, x], scene.hierarchy.labels[max_id[y, x], 1:].T)
     assert (maps[:, max_id < 0] == -1).all()
 
 
@@ -251,7 +253,7 @@ def test_severity_zero_reproduces_the_ground_truth_components(scene, view):
         expected = _flood_components(maps[level])
         assert set(_mask_sets(faulty[level])) == expected
         # every mask is named after the node under it
-        names = np.array(scene.hierarchy.names[level], dtype=object)
+        names = np.array(scene.hierarchy.names[level + 1], dtype=object)
         for i, name in enumerate(faulty[level].names):
             nodes = np.unique(maps[level][faulty[level].ids == i])
             assert list(names[nodes]) == [name]
@@ -281,7 +283,7 @@ def test_oracle_guidance_at_severity_zero_is_the_clean_layout(scene, view):
             frozenset(np.flatnonzero(segments.ravel() == i).tolist())
             for i in np.unique(segments[segments >= 0])
         } == _flood_components(maps[level])
-        names = scene.hierarchy.names[level]
+        names = scene.hierarchy.names[level + 1]
         for i in np.unique(segments[segments >= 0]):
             node = int(np.unique(maps[level][segments == i])[0])
             np.testing.assert_allclose(
@@ -410,7 +412,7 @@ def test_spurious_only_adds_small_masks_and_changes_nothing_else(scene, view):
                 continue
             assert (after.ids == i).sum() <= largest
             added += 1
-        names_under = np.array([*scene.hierarchy.names[level], None], dtype=object)[maps[level]]
+        names_under = np.array([*scene.hierarchy.names[level + 1], None], dtype=object)[maps[level]]
         for i in np.unique(after.ids[spurious & (after.ids >= 0)]):
             assert after.names[i] in set(names_under[after.ids == i])
     assert added > 0

@@ -88,12 +88,12 @@ def test_hierarchy_and_scannet_labels_match_the_scene(dataset, scene):
     assert hierarchy.names == scene.hierarchy.names
     scannet = read_scannet_labels(dataset / SCANNET_LABELS)
     np.testing.assert_array_equal(scannet.points, scene.gaussians.means.numpy())
-    objects = hierarchy.labels[:, 2]
+    objects = hierarchy.labels[:, 3]
     for i in range(len(hierarchy)):
         if objects[i] < 0:
             assert scannet.labels[i] == 0
         else:
-            assert scannet.class_names[int(scannet.labels[i])] == hierarchy.names[2][objects[i]]
+            assert scannet.class_names[int(scannet.labels[i])] == hierarchy.names[3][objects[i]]
 
 
 def test_guidance_masks_index_features_in_the_recorded_space(dataset, scene, encoder):
@@ -109,7 +109,7 @@ def test_guidance_masks_index_features_in_the_recorded_space(dataset, scene, enc
         _, max_id = render_view(scene, index, DATASET.background)
         maps = ground_truth_maps(max_id, scene.hierarchy)
         for level in (1, 2, 3):
-            names = scene.hierarchy.names[level - 1]
+            names = scene.hierarchy.names[level]
             vocabulary = sorted(set(names))
             text = encoder.encode(vocabulary)
             hits = []
@@ -139,12 +139,12 @@ def test_labels_rasterize_back_to_the_ground_truth(dataset, scene):
             np.testing.assert_array_equal(labels.category_mask(category), truth)
         # 3DOVS masks: every object class, at the camera resolution
         segmentations = read_3dovs_segmentations(dataset / "segmentations")
-        assert segmentations.classes == tuple(sorted(set(scene.hierarchy.names[2])))
+        assert segmentations.classes == tuple(sorted(set(scene.hierarchy.names[3])))
         masks = segmentations.views[f"{index:02d}"]
         assert set(masks) == set(segmentations.classes)
         for name, mask in masks.items():
             assert mask.shape == (TINY.height, TINY.width)
-            nodes = [i for i, node in enumerate(scene.hierarchy.names[2]) if node == name]
+            nodes = [i for i, node in enumerate(scene.hierarchy.names[3]) if node == name]
             np.testing.assert_array_equal(mask, np.isin(maps[2], nodes))
     assert sorted(p.stem for p in (dataset / "label").iterdir()) == [
         scene.cameras.stems[i] for i in evaluated

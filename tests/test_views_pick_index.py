@@ -12,6 +12,7 @@ import torch
 
 from thgs import Cameras, Gaussians, InputError
 from thgs.field import SemanticField
+from thgs.hierarchy import RegionLevels
 from thgs.pick_index import PickIndex
 from thgs.render import RasterConfig, render
 from thgs.render._reference import dense_alpha
@@ -69,8 +70,7 @@ def identity_field(n: int) -> SemanticField:
     """A field where every Gaussian is its own region at every level (all that pick reads)."""
     ids = np.arange(n, dtype=np.int32)
     return SemanticField(
-        labels=np.repeat(ids[:, None], 4, axis=1),
-        parents=(ids, ids, ids),
+        levels=RegionLevels(np.repeat(ids[:, None], 4, axis=1), (ids, ids, ids), (n,) * 4),
         features=(np.zeros((n, 1), np.float32),) * 3,
         seen=(np.zeros(n, bool),) * 3,
         space="none",

@@ -30,9 +30,10 @@ from thgs.errors import InputError
 from thgs.eval import matched_miou, purity
 from thgs.eval.ground_truth import Hierarchy, read_hierarchy
 from thgs.export import region_colors, slug, write_json, write_map_png
-from thgs.field import FIELD_LEVELS, SemanticField, save_field
+from thgs.field import SemanticField, save_field
 from thgs.field_scene import record_scene
 from thgs.guidance import ViewGuidance, load_guidance, read_embedding_space
+from thgs.hierarchy.levels import LEVEL_NAMES
 from thgs.pipeline import FieldConfig, Progress, build_field
 from thgs.query import FieldQuery
 from thgs.render import render
@@ -138,9 +139,9 @@ class DemoReport:
             "field": str(self.field_path),
             "gaussians": self.gaussians,
             "views": self.views,
-            "region_counts": dict(zip(FIELD_LEVELS, self.region_counts)),
-            "ground_truth_counts": dict(zip(FIELD_LEVELS[1:], self.ground_truth_counts)),
-            "miou": dict(zip(FIELD_LEVELS[1:], self.miou)),
+            "region_counts": dict(zip(LEVEL_NAMES, self.region_counts)),
+            "ground_truth_counts": dict(zip(LEVEL_NAMES[1:], self.ground_truth_counts)),
+            "miou": dict(zip(LEVEL_NAMES[1:], self.miou)),
             "superpoint_purity": self.superpoint_purity,
             "timings": self.timings,
             "build_seconds": sum(self.timings.values()),
@@ -164,7 +165,7 @@ class DemoReport:
         }
 
     def markdown(self) -> str:
-        levels = FIELD_LEVELS[1:]
+        levels = LEVEL_NAMES[1:]
         lines = [
             "# thgs demo",
             "",
@@ -190,7 +191,7 @@ class DemoReport:
             regions = ", ".join(f"{lv}:{r} {s:.3f}" for lv, r, s in q.regions)
             iou = "–" if np.isnan(q.iou) else f"{q.iou:.3f}"
             best = "–" if np.isnan(q.best_iou) else f"{q.best_iou:.3f}"
-            lines.append(f"| {q.text} | {regions} | {iou} | {FIELD_LEVELS[q.level]}: {best} |")
+            lines.append(f"| {q.text} | {regions} | {iou} | {LEVEL_NAMES[q.level]}: {best} |")
         timings = ", ".join(f"{stage} {seconds:.2f} s" for stage, seconds in self.timings.items())
         lines += [
             "",
@@ -204,9 +205,9 @@ class DemoReport:
 def demo_queries(hierarchy: Hierarchy, objects: int = 3, parts: int = 2) -> tuple[str, ...]:
     """Default queries: the first ``objects`` object names and ``parts`` part names that are not
     also object names (the floor left out), in the scene's order."""
-    object_names = [n for n in dict.fromkeys(hierarchy.names[2]) if n != "floor"]
+    object_names = [n for n in dict.fromkeys(hierarchy.names[3]) if n != "floor"]
     part_names = [
-        n for n in dict.fromkeys(hierarchy.names[1]) if n != "floor" and n not in object_names
+        n for n in dict.fromkeys(hierarchy.names[2]) if n != "floor" and n not in object_names
     ]
     return tuple(object_names[:objects] + part_names[:parts])
 
@@ -344,7 +345,7 @@ def run_demo(
 
     hierarchy = read_hierarchy(folder / "ground_truth.safetensors")
     truth = hierarchy.labels
-    miou = tuple(matched_miou(field.labels[:, k], truth[:, k - 1]) for k in (1, 2, 3))
+    miou = tuple(matched_miou(field.labels[:, k], truth[:, k]) for k in (1, 2, 3))
     view = evaluation_views(len(scene.cameras), 4)[0]
     rgb, _ = _render(scene, view, scene.gaussians.dc_colors().detach().cpu().numpy())
     levels_path = out / "levels.png"
@@ -352,17 +353,17 @@ def run_demo(
     files.append(levels_path)
 
     texts = tuple(queries) if queries is not None else demo_queries(hierarchy)
-    names = [hierarchy.level_names(level) for level in range(3)]
+    names = {level: hierarchy.level_names(level) for level in (1, 2, 3)}
     camera = scene.cameras.select([view])
     results = []
     fq = FieldQuery(field, encoder)
     for selection in fq.select(list(texts)):
         text = selection.text
         wanted = np.zeros(len(field), dtype=bool)
-        for level_names in names:
+        for level_names in names.values():
             wanted |= level_names == text
         # the coarsest level whose ground truth has this name (objects first)
-        level = next((k + 1 for k in (2, 1, 0) if (names[k] == text).any()), 3)
+        level = next((k for k in (3, 2, 1) if (names[k] == text).any()), 3)
         best = fq.select([text], fq.with_config(mode="level", level=level))[0]
         iou, best_iou = (_iou(chosen.gaussians, wanted) for chosen in (selection, best))
         mask = selection_masks(scene.gaussians, camera, selection.gaussians)
@@ -399,7 +400,7 @@ def run_demo(
         gaussians=len(field),
         views=len(scene.cameras),
         region_counts=field.region_counts,
-        ground_truth_counts=tuple(len(level) for level in hierarchy.names),
+        ground_truth_counts=tuple(len(hierarchy.names[k]) for k in (1, 2, 3)),
         miou=miou,
         superpoint_purity=purity(field.labels[:, 0], truth[:, 0]),
         timings=dict(field.timings),

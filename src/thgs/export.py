@@ -32,7 +32,8 @@ import torch
 
 from thgs._atomic import atomic_output
 from thgs.errors import InputError
-from thgs.field import FIELD_LEVELS, SemanticField
+from thgs.field import SemanticField
+from thgs.hierarchy.levels import LEVEL_NAMES
 from thgs.scene import SH_C0, Gaussians, write_ply
 
 __all__ = [
@@ -131,7 +132,7 @@ def write_labels(
 
     ``.npy``: int32 [N] for one level, [N, L] for several (columns in ``levels`` order).
     ``.json``: ``{"levels": {"object": [...], ...}, "gaussians": N, "space": ...}``, one list of
-    N ids per level, keyed by the level's name (:data:`thgs.field.FIELD_LEVELS`).
+    N ids per level, keyed by the level's name (:data:`thgs.hierarchy.LEVEL_NAMES`).
 
     Raises:
         InputError: another extension or an invalid level.
@@ -148,7 +149,7 @@ def write_labels(
             {
                 "gaussians": len(field),
                 "space": field.space,
-                "levels": {FIELD_LEVELS[k]: labels[:, j].tolist() for j, k in enumerate(levels)},
+                "levels": {LEVEL_NAMES[k]: labels[:, j].tolist() for j, k in enumerate(levels)},
             },
             indent=None,
         )
@@ -248,7 +249,7 @@ def write_selection(
     summary = {
         **(description or {}),
         "gaussians": int(index.size),
-        "levels": list(FIELD_LEVELS),
+        "levels": list(LEVEL_NAMES),
         "files": [path.name for path in paths[:3]],
     }
     written: list[Path] = []

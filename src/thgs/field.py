@@ -35,10 +35,10 @@ import torch
 
 from thgs._atomic import atomic_output
 from thgs.errors import InputError
+from thgs.hierarchy.levels import RegionLevels
 from thgs.scene import Gaussians
 
 __all__ = [
-    "FIELD_LEVELS",
     "FORMAT_VERSION",
     "SemanticField",
     "load_field",
@@ -50,9 +50,6 @@ logger = logging.getLogger(__name__)
 
 FORMAT_VERSION = 2
 """Version of the semantic-field file layout this thgs writes (and the newest it reads)."""
-
-FIELD_LEVELS = ("superpoint", "subpart", "part", "object")
-"""Names of the field's levels, finest first: column k of :attr:`SemanticField.labels`."""
 
 _FORMAT = "thgs.semantic_field"
 _FINGERPRINT = re.compile(r"sha256:[0-9a-f]{64}")
@@ -76,10 +73,9 @@ class SemanticField:
     (superpoints) has no features; levels 1..3 are indexed ``k − 1`` in the tuples below.
 
     Attributes:
-        labels: [N, 4] int32, ``labels[i, k]`` is the level-k region of Gaussian i.
-        parents: three int32 arrays; ``parents[k - 1]`` is [R_{k−1}], the level-k region that
-            contains each level-(k−1) region (k = 1..3). Nesting:
-            ``labels[:, k] == parents[k - 1][labels[:, k - 1]]``.
+        levels: the nested regions (:class:`thgs.hierarchy.RegionLevels`): ``levels.labels``
+            [N, 4] int32 region of each Gaussian per level, ``levels.parents[k - 1]`` [R_{k−1}]
+            the level-k region containing each level-(k−1) region (k = 1..3).
         features: three float32 arrays; ``features[k - 1]`` is [R_k, D], a unit row per seen
             level-k region and a zero row per unseen one.
         seen: three bool arrays; ``seen[k - 1]`` is [R_k], whether the level-k region got a
@@ -94,8 +90,7 @@ class SemanticField:
             same bytes), so a loaded field has none (a version-1 file's stored ones excepted).
     """
 
-    labels: np.ndarray
-    parents: tuple[np.ndarray, np.ndarray, np.ndarray]
+    levels: RegionLevels
     features: tuple[np.ndarray, np.ndarray, np.ndarray]
     seen: tuple[np.ndarray, np.ndarray, np.ndarray]
     space: str
@@ -119,75 +114,36 @@ class SemanticField:
         return int(self.features[0].shape[1])
 
     @property
+    def labels(self) -> np.ndarray:
+        """[N, 4] int32: ``labels[i, k]`` is the level-k region of Gaussian i."""
+        return self.levels.labels
+
+    @property
+    def parents(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``parents[k - 1]`` [R_{k−1}] int32: the level-k region of each level-(k−1) region."""
+        assert self.levels.parents is not None  # check() requires nested levels
+        return self.levels.parents
+
+    @property
     def region_counts(self) -> tuple[int, int, int, int]:
         """(R_0, R_1, R_2, R_3): the number of regions at each level."""
-        return (
-            int(self.parents[0].shape[0]),
-            int(self.features[0].shape[0]),
-            int(self.features[1].shape[0]),
-            int(self.features[2].shape[0]),
-        )
+        return self.levels.counts
 
     def sizes(self, level: int) -> np.ndarray:
         """[R_level] int64: the number of Gaussians in each region of ``level`` (0..3)."""
-        level = self.checked_level(level, range(4))
-        return np.bincount(self.labels[:, level], minlength=self.region_counts[level]).astype(
-            np.int64
-        )
+        return self.levels.sizes(level)
 
     def parent(self, level: int, region: int) -> int:
         """The level + 1 region that contains ``region`` of ``level`` (0..2)."""
-        level = self.checked_level(level, range(3))
-        region = self.checked_region(level, region)
-        return int(self.parents[level][region])
+        return self.levels.parent(level, region)
 
     def children(self, level: int, region: int) -> np.ndarray:
         """[C] int32, sorted: the level − 1 regions inside ``region`` of ``level`` (1..3)."""
-        level = self.checked_level(level, range(1, 4))
-        region = self.checked_region(level, region)
-        return np.flatnonzero(self.parents[level - 1] == region).astype(np.int32)
+        return self.levels.children(level, region)
 
     def members(self, level: int, region: int) -> np.ndarray:
-        """[M] int64, sorted: the indices of the Gaussians in ``region`` of ``level`` (0..3).
-
-        Scans all N labels; to list every region's members at once, group
-        ``np.argsort(labels[:, level], kind="stable")`` instead.
-        """
-        level = self.checked_level(level, range(4))
-        region = self.checked_region(level, region)
-        return np.flatnonzero(self.labels[:, level] == region).astype(np.int64)
-
-    def checked_level(self, level: int, allowed: range = range(4)) -> int:
-        """``level`` as an int after checking that it is an integer in ``allowed``.
-
-        Raises:
-            InputError: not an integer, or outside ``allowed`` (e.g. ``range(1, 4)`` for the
-                levels with features).
-        """
-        if isinstance(level, bool) or not isinstance(level, (int, np.integer)):
-            raise InputError("SemanticField", f"level must be an integer, got {level!r}")
-        if int(level) not in allowed:
-            raise InputError(
-                "SemanticField",
-                f"level must be in {allowed.start}..{allowed.stop - 1} here, got {level}",
-            )
-        return int(level)
-
-    def checked_region(self, level: int, region: int) -> int:
-        """``region`` as an int after checking that it is a region id of ``level``.
-
-        Raises:
-            InputError: not an integer, or not in 0..R_level − 1.
-        """
-        if isinstance(region, bool) or not isinstance(region, (int, np.integer)):
-            raise InputError("SemanticField", f"region must be an integer, got {region!r}")
-        count = self.region_counts[level]
-        if not 0 <= int(region) < count:
-            raise InputError(
-                "SemanticField",
-                f"level {level} has regions 0..{count - 1}, got region {region}",
-            )
-        return int(region)
+        """[M] int64, sorted: the indices of the Gaussians in ``region`` of ``level`` (0..3)."""
+        return self.levels.members(level, region)
 
     def check(self, source: str = "SemanticField") -> SemanticField:
         """Verify every invariant; raise :class:`InputError` naming ``source`` and the problem.
@@ -199,16 +155,16 @@ class SemanticField:
         ``space`` non-empty; ``fingerprint`` ``"sha256:"`` + 64 hex digits; ``config`` a dict
         of JSON values; ``timings`` finite seconds ≥ 0. Returns ``self`` to allow chaining.
         """
-        labels = self.labels
-        if not isinstance(labels, np.ndarray) or labels.dtype != np.int32:
-            raise InputError(source, f"labels must have dtype int32, got {_describe(labels)}")
-        if labels.ndim != 2 or labels.shape[1] != 4:
-            raise InputError(source, f"labels must be [N, 4], got {list(labels.shape)}")
-        for name in ("parents", "features", "seen"):
+        if not isinstance(self.levels, RegionLevels):
+            raise InputError(source, f"levels must be RegionLevels, got {_describe(self.levels)}")
+        if not self.levels.nested:
+            raise InputError(source, "levels must nest (parents), a field's levels always do")
+        self.levels.check(source)
+        for name in ("features", "seen"):
             value = getattr(self, name)
             if not isinstance(value, tuple) or len(value) != 3:
                 raise InputError(source, f"{name} must be a tuple of 3 arrays (levels 1..3)")
-        counts = [_first_dim(self.parents[0])] + [_first_dim(f) for f in self.features]
+        counts = self.levels.counts
         for k in range(1, 4):
             self._check_level_arrays(source, k, counts)
         dims = {int(f.shape[1]) for f in self.features}
@@ -216,70 +172,28 @@ class SemanticField:
             raise InputError(source, f"features have different widths over levels: {sorted(dims)}")
         if dims == {0}:
             raise InputError(source, "features have width D = 0")
-        for k in range(4):
-            column = labels[:, k]
-            if column.size and (column.min() < 0 or column.max() >= counts[k]):
-                bad = int(np.flatnonzero((column < 0) | (column >= counts[k]))[0])
-                raise InputError(
-                    source,
-                    f"labels[:, {k}] must be in 0..{counts[k] - 1}, "
-                    f"Gaussian {bad} has {int(column[bad])}",
-                )
-            empty = np.flatnonzero(np.bincount(column, minlength=counts[k]) == 0)
-            if empty.size:
-                raise InputError(
-                    source,
-                    f"level {k} ids are not contiguous: {empty.size} of {counts[k]} regions "
-                    f"have no Gaussian (first: region {int(empty[0])})",
-                )
-        for k in range(1, 4):
-            parents = self.parents[k - 1]
-            if parents.size and (parents.min() < 0 or parents.max() >= counts[k]):
-                bad = int(np.flatnonzero((parents < 0) | (parents >= counts[k]))[0])
-                raise InputError(
-                    source,
-                    f"parents[{k - 1}] must be level-{k} ids in 0..{counts[k] - 1}, "
-                    f"region {bad} has {int(parents[bad])}",
-                )
-            broken = np.flatnonzero(labels[:, k] != parents[labels[:, k - 1]])
-            if broken.size:
-                i = int(broken[0])
-                raise InputError(
-                    source,
-                    f"labels are not nested between levels {k - 1} and {k}: {broken.size} "
-                    f"Gaussians disagree with parents[{k - 1}] (first: Gaussian {i}, level-"
-                    f"{k - 1} region {int(labels[i, k - 1])} has parent "
-                    f"{int(parents[labels[i, k - 1]])}, label says {int(labels[i, k])})",
-                )
         for k in range(1, 4):
             self._check_features(source, k)
         self._check_metadata(source)
         return self
 
-    def _check_level_arrays(self, source: str, k: int, counts: list[int]) -> None:
-        parents, features, seen = self.parents[k - 1], self.features[k - 1], self.seen[k - 1]
-        expected = (
-            (f"parents[{k - 1}]", parents, np.int32, 1),
+    def _check_level_arrays(self, source: str, k: int, counts: tuple[int, ...]) -> None:
+        features, seen = self.features[k - 1], self.seen[k - 1]
+        for name, array, dtype, ndim in (
             (f"features[{k - 1}]", features, np.float32, 2),
             (f"seen[{k - 1}]", seen, np.bool_, 1),
-        )
-        for name, array, dtype, ndim in expected:
+        ):
             if not isinstance(array, np.ndarray) or array.dtype != dtype:
                 raise InputError(
                     source, f"{name} must have dtype {np.dtype(dtype)}, got {_describe(array)}"
                 )
             if array.ndim != ndim:
                 raise InputError(source, f"{name} must have {ndim} dimension(s), got {array.ndim}")
-        if parents.shape[0] != counts[k - 1]:
-            raise InputError(
-                source,
-                f"parents[{k - 1}] has {parents.shape[0]} entries, level {k - 1} has "
-                f"{counts[k - 1]} regions",
-            )
-        if seen.shape[0] != counts[k]:
-            raise InputError(
-                source, f"seen[{k - 1}] has {seen.shape[0]} entries, level {k} has {counts[k]}"
-            )
+            if array.shape[0] != counts[k]:
+                raise InputError(
+                    source,
+                    f"{name} has {array.shape[0]} rows, level {k} has {counts[k]} regions",
+                )
 
     def _check_features(self, source: str, k: int) -> None:
         features, seen = self.features[k - 1], self.seen[k - 1]
@@ -476,8 +390,11 @@ def load_field(path: str | os.PathLike[str]) -> SemanticField:
             f"metadata says region counts {header['region_counts']}, tensors have {counts}",
         )
     field = SemanticField(
-        labels=labels,
-        parents=tuple(tensors[f"parents_{k}"] for k in (1, 2, 3)),  # type: ignore[arg-type]
+        levels=RegionLevels(
+            labels,
+            tuple(tensors[f"parents_{k}"] for k in (1, 2, 3)),  # type: ignore[arg-type]
+            tuple(counts),  # type: ignore[arg-type]
+        ),
         features=tuple(tensors[f"features_{k}"] for k in (1, 2, 3)),  # type: ignore[arg-type]
         seen=tuple(tensors[f"seen_{k}"].astype(bool) for k in (1, 2, 3)),  # type: ignore[arg-type]
         space=header["space"],

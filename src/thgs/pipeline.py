@@ -37,6 +37,7 @@ from thgs.graph import (
 from thgs.guidance import ViewGuidance
 from thgs.hierarchy import (
     MergeConfig,
+    RegionLevels,
     RepeatConfig,
     gaussian_neighbors,
     group_repeated_parts,
@@ -49,8 +50,8 @@ from thgs.scene import Cameras, Gaussians
 
 __all__ = [
     "PRESETS",
+    "BuiltLevels",
     "FieldConfig",
-    "Levels",
     "LiftedScene",
     "PartitionReport",
     "PosedScene",
@@ -494,20 +495,18 @@ PRESETS: dict[str, Callable[[], FieldConfig]] = {
 
 
 @dataclass(frozen=True, eq=False)
-class Levels:
+class BuiltLevels:
     """Regions at levels 0–3 and their features, before they become a field.
 
     Attributes:
-        labels: [N, 4] int32 region id per Gaussian at levels 0–3.
-        parents: ``parents[k - 1]`` [R_{k−1}] level-k region of each level-(k−1) region; None
-            when the levels need not nest (merge mode ``independent``).
+        levels: the regions (:class:`thgs.hierarchy.RegionLevels`); not nested (``parents``
+            None) for merge mode ``independent``.
         features: level k at index k − 1: [R_k, D] float32 unit rows (zero rows unseen).
         seen: level k at index k − 1: [R_k] bool.
         timings: wall time per stage (lifting excluded).
     """
 
-    labels: np.ndarray
-    parents: tuple[np.ndarray, np.ndarray, np.ndarray] | None
+    levels: RegionLevels
     features: tuple[np.ndarray, np.ndarray, np.ndarray]
     seen: tuple[np.ndarray, np.ndarray, np.ndarray]
     timings: dict[str, float]
@@ -572,7 +571,7 @@ def build_levels(
     config: FieldConfig = FieldConfig(),
     *,
     progress: Progress | None = None,
-) -> Levels:
+) -> BuiltLevels:
     """Graph → reweight → partition → merge → features on views lifted by :func:`lift_scene`.
 
     Every merge mode is allowed here, ``independent`` included (its levels need not nest).
@@ -603,8 +602,9 @@ def build_levels(
     started = time.perf_counter()
     neighbors = gaussian_neighbors(gaussians, config.merge.neighbors)
     adjacency_seconds = time.perf_counter() - started
-    merged = merge_levels(gaussians, superpoints, lifted.lifted, config.merge, neighbors=neighbors)
-    merge_seconds = {**merged.seconds}
+    merge = merge_levels(gaussians, superpoints, lifted.lifted, config.merge, neighbors=neighbors)
+    merged = merge.levels
+    merge_seconds = {**merge.seconds}
     merge_seconds["adjacency"] = adjacency_seconds  # the shared neighbours, computed here
     stage("merge", 1)
     stage("features", 0)
@@ -629,9 +629,8 @@ def build_levels(
         logger.info("merge %s: %.2f s", name, seconds)
     logger.info("features: %.2f s", feature_seconds)
     features_of, seen_of = zip(*features)
-    return Levels(
-        labels=merged.labels,
-        parents=merged.parents,
+    return BuiltLevels(
+        levels=merged,
         features=features_of,
         seen=seen_of,
         timings={**report.seconds, **merge_seconds, "features": feature_seconds},
@@ -689,14 +688,12 @@ def build_field(
         raise InputError("space", "name the embedding space of the guidance features")
     _check_features(guidance)
     lifted = lift_scene(scene, guidance, config.superpoints.lift, progress, cache=lift_cache)
-    levels = build_levels(lifted, guidance, config, progress=progress)
-    assert levels.parents is not None  # every mode but "independent" nests
-    timings = {"lift": lifted.seconds, **levels.timings}
+    built = build_levels(lifted, guidance, config, progress=progress)
+    timings = {"lift": lifted.seconds, **built.timings}
     result = SemanticField(
-        labels=levels.labels,
-        parents=levels.parents,
-        features=levels.features,
-        seen=levels.seen,
+        levels=built.levels,
+        features=built.features,
+        seen=built.seen,
         space=space,
         fingerprint=scene_fingerprint(lifted.gaussians),
         config=config.to_json(),

@@ -36,8 +36,11 @@ from typing import Any, Literal
 import numpy as np
 from scipy.special import expit
 
+from thgs._config_json import config_from_json
 from thgs.errors import InputError
 from thgs.field import SemanticField
+from thgs.hierarchy import MergeConfig
+from thgs.hierarchy.levels import RegionLevels
 from thgs.text import MINILM_SPACE, TextEncoder, check_space
 
 __all__ = [
@@ -199,8 +202,9 @@ class Selection:
         """Whether nothing was selected."""
         return not self.regions
 
-    def to_json(self, field: SemanticField) -> dict[str, Any]:
-        """JSON-ready summary: the text, the regions (with their sizes) and the Gaussian count."""
+    def to_json(self, field: SemanticField | Regions) -> dict[str, Any]:
+        """JSON-ready summary: the text, the regions (with their sizes in ``field``, the one
+        queried) and the Gaussian count."""
         return {
             "text": self.text,
             "regions": [
@@ -267,8 +271,7 @@ class Regions:
     features; the levels need not nest (the "no progressive merging" ablation's do not).
 
     Attributes:
-        labels: [N, 4] integer region id per Gaussian at levels 0–3 (column k is level k; ids
-            0 … R_k − 1).
+        levels: the regions (:class:`thgs.hierarchy.RegionLevels`, nested or not).
         features: level k = 1..3 at index k − 1: [R_k, D] unit features (zero rows unseen).
         seen: level k at index k − 1: [R_k] bool, whether any view saw the region.
         space: the features' embedding space.
@@ -276,7 +279,7 @@ class Regions:
             small-region size; 0 selects every region).
     """
 
-    labels: np.ndarray
+    levels: RegionLevels
     features: tuple[np.ndarray, np.ndarray, np.ndarray]
     seen: tuple[np.ndarray, np.ndarray, np.ndarray]
     space: str
@@ -285,10 +288,15 @@ class Regions:
     @classmethod
     def from_field(cls, field: SemanticField) -> Regions:
         """A field's regions, with its small-region size (:func:`small_region_size`)."""
-        return cls(field.labels, field.features, field.seen, field.space, small_region_size(field))
+        return cls(field.levels, field.features, field.seen, field.space, small_region_size(field))
 
     def __len__(self) -> int:
-        return int(self.labels.shape[0])
+        return len(self.levels)
+
+    @property
+    def labels(self) -> np.ndarray:
+        """[N, 4] int32: ``labels[i, k]`` is the level-k region of Gaussian i."""
+        return self.levels.labels
 
     @property
     def dim(self) -> int:
@@ -297,8 +305,7 @@ class Regions:
 
     def sizes(self, level: int) -> np.ndarray:
         """[R_level] int64: the number of Gaussians in each region of ``level`` (1..3)."""
-        count = len(self.features[self.checked_level(level) - 1])
-        return np.bincount(self.labels[:, level], minlength=count).astype(np.int64)
+        return self.levels.sizes(self.checked_level(level))
 
     def checked_level(self, level: int) -> int:
         """``level`` as an int after checking that it is 1, 2 or 3 (the levels with features).
@@ -306,41 +313,33 @@ class Regions:
         Raises:
             InputError: anything else.
         """
-        if isinstance(level, bool) or not isinstance(level, (int, np.integer)):
-            raise InputError("level", f"must be an integer, got {level!r}")
-        if int(level) not in (1, 2, 3):
-            raise InputError("level", f"must be 1, 2 or 3, got {level}")
-        return int(level)
+        return self.levels.checked_level(level, range(1, 4))
 
     def checked_region(self, level: int, region: int) -> int:
-        """``region`` as an int after checking that it is a region id of ``level``.
+        """``region`` as an int after checking that it is a region id of ``level`` (1..3).
 
         Raises:
             InputError: not an integer, or not in 0..R_level − 1.
         """
-        if isinstance(region, bool) or not isinstance(region, (int, np.integer)):
-            raise InputError("region", f"must be an integer, got {region!r}")
-        count = len(self.features[self.checked_level(level) - 1])
-        if not 0 <= int(region) < count:
-            raise InputError("region", f"level {level} has regions 0..{count - 1}, got {region}")
-        return int(region)
+        return self.levels.checked_region(self.checked_level(level), region)
 
     def check(self, source: str = "Regions") -> Regions:
-        """Verify shapes and id ranges; raise :class:`InputError` naming ``source``."""
-        labels = np.asarray(self.labels)
-        if labels.ndim != 2 or labels.shape[1] != 4:
-            raise InputError(source, f"labels must be [N, 4], got {list(labels.shape)}")
+        """Verify the levels (:meth:`RegionLevels.check`) and that every level 1–3 has one
+        [R_k, D] feature row and one seen flag per region, with one D; raise
+        :class:`InputError` naming ``source``."""
+        if not isinstance(self.levels, RegionLevels):
+            raise InputError(source, f"levels must be RegionLevels, got {type(self.levels)}")
+        self.levels.check(source)
         dims = set()
         for k in (1, 2, 3):
             features, seen = self.features[k - 1], self.seen[k - 1]
-            if features.ndim != 2 or seen.shape != (features.shape[0],):
+            count = self.levels.counts[k]
+            if features.ndim != 2 or features.shape[0] != count or seen.shape != (count,):
                 raise InputError(
                     source,
                     f"level {k}: features {list(features.shape)} and seen {list(seen.shape)} "
-                    "must be [R, D] and [R]",
+                    f"must be [R, D] and [R] with R = {count} regions",
                 )
-            if len(labels) and (labels[:, k].min() < 0 or labels[:, k].max() >= len(features)):
-                raise InputError(source, f"level {k}: region ids outside 0..{len(features) - 1}")
             dims.add(features.shape[1])
         if len(dims) != 1:
             raise InputError(source, f"levels have different feature dimensions {sorted(dims)}")
@@ -500,11 +499,17 @@ class FieldQuery:
 
 
 def small_region_size(field: SemanticField) -> int:
-    """The field's ``thres_merge`` (``config["merge"]["min_region_gaussians"]``, 0 when it does
-    not say): regions below it are unabsorbed leftovers."""
-    merge = field.config.get("merge")
-    size = merge.get("min_region_gaussians", 0) if isinstance(merge, dict) else 0
-    return int(size) if isinstance(size, int) and not isinstance(size, bool) else 0
+    """The field's ``thres_merge`` (its recorded :class:`thgs.hierarchy.MergeConfig`'s
+    ``min_region_gaussians``): regions below it are unabsorbed leftovers. 0 (every region
+    selectable) when the field records no merge settings or ones this thgs cannot read (logged)."""
+    if "merge" not in field.config:
+        return 0
+    try:
+        merge = config_from_json(MergeConfig, field.config["merge"], "field config: merge")
+    except InputError as error:
+        logger.warning("%s; every region may be selected", error)
+        return 0
+    return merge.min_region_gaussians
 
 
 def _checked_texts(texts: Sequence[str]) -> list[str]:

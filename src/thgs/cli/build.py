@@ -18,13 +18,13 @@ __all__ = ["build", "demo"]
 
 
 def _counts_table(title: str, counts, timings: dict[str, float]) -> Table:
-    from thgs.field import FIELD_LEVELS
+    from thgs.hierarchy.levels import LEVEL_NAMES
 
     table = Table(title=title, show_header=False, title_justify="left")
     table.add_column(style="bold")
     table.add_column()
     table.add_row(
-        "regions", ", ".join(f"{name} {count:,}" for name, count in zip(FIELD_LEVELS, counts))
+        "regions", ", ".join(f"{name} {count:,}" for name, count in zip(LEVEL_NAMES, counts))
     )
     table.add_row(
         "time",

@@ -5,7 +5,6 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Annotated, Literal
 
-import numpy as np
 import tyro
 from rich.table import Table
 
@@ -48,27 +47,15 @@ def _field_query(field_path: Path, field, text_model: Path | None, config):
     return FieldQuery(field, encoder, config, source=str(field_path))
 
 
-def _unique_slugs(texts: list[str]) -> list[str]:
-    from thgs.export import slug
-
-    slugs: list[str] = []
-    for text in texts:
-        name, k = slug(text), 2
-        while name in slugs:
-            name, k = f"{slug(text)}-{k}", k + 1
-        slugs.append(name)
-    return slugs
-
-
 def _selection_table(title: str, field, selections) -> Table:
-    from thgs.field import FIELD_LEVELS
+    from thgs.hierarchy.levels import LEVEL_NAMES
 
     table = Table(title=title, title_justify="left")
     for column in ("query", "regions (level region: relevancy, Gaussians)", "Gaussians"):
         table.add_column(column)
     for selection in selections:
         regions = "; ".join(
-            f"{FIELD_LEVELS[k]} {r}: {score:.3f}, {int(field.sizes(k)[r]):,}"
+            f"{LEVEL_NAMES[k]} {r}: {score:.3f}, {int(field.sizes(k)[r]):,}"
             for k, r, score in selection.regions
         )
         table.add_row(
@@ -123,10 +110,10 @@ def query(
             cpu, cuda or mps (docs/rendering.md).
         verbose: log what is loaded and how long it takes.
     """
-    from thgs.export import write_json, write_map_png, write_mask_png
-    from thgs.field import FIELD_LEVELS, load_field
+    from thgs.field import load_field
     from thgs.field_scene import find_view, open_field_scene
-    from thgs.views import relevancy_map, selection_masks
+    from thgs.pipeline import lifted_raster
+    from thgs.results import write_query_results
 
     setup_logging(verbose)
     if not texts:
@@ -141,60 +128,32 @@ def query(
     else:
         semantic, loaded = load_field(field), None
     fq = _field_query(field, semantic, text_model, config)
-    selections = fq.select(list(texts))
-    stdout.print(_selection_table(f"thgs query {field} ({config.mode})", semantic, selections))
     if out is None:
+        selections = fq.select(list(texts))
+        stdout.print(_selection_table(f"thgs query {field} ({config.mode})", semantic, selections))
         return
-    names = _unique_slugs(list(texts))
-    files: dict[str, list[str]] = {name: [] for name in names}
-    indices = []
-    if views:
+    cameras = None
+    if loaded is not None:
         wanted = loaded.cameras.stems if views == ("all",) else views
         where = loaded.cameras_path or loaded.ply_path
-        indices = [find_view(loaded.cameras, name, where) for name in wanted]
-    selected = np.stack([s.gaussians for s in selections], axis=1)
-    relevancies = {
-        k: np.stack([fq.gaussian_relevancy(text, k) for text in texts], axis=1)
-        for k in (config.searched_levels if relevancy else ())
-    }
-    for index in indices:
-        camera = loaded.cameras.select([index])
-        stem = camera.stems[0]
-        masks = selection_masks(loaded.gaussians, camera, selected, threshold=mask_threshold)
-        for q, name in enumerate(names):
-            path = out / name / f"{stem}.png"
-            write_mask_png(path, masks[..., q])
-            files[name].append(str(path))
-        for k, per_gaussian in relevancies.items():
-            maps = relevancy_map(loaded.gaussians, camera, per_gaussian)
-            for q, name in enumerate(names):
-                path = out / name / f"{stem}-relevancy-{FIELD_LEVELS[k]}.png"
-                write_map_png(path, maps[..., q])
-                files[name].append(str(path))
-    results = [
-        {**selection.to_json(semantic), "files": files[name]}
-        for selection, name in zip(selections, names)
-    ]
-    write_json(
-        out / "results.json",
-        {
-            "field": str(field),
-            "space": semantic.space,
-            "config": {
-                "mode": config.mode,
-                "searched_levels": list(config.searched_levels),
-                "threshold": config.threshold if config.threshold is not None else fq.threshold,
-                "top": config.top,
-                "min_gaussians": (
-                    fq.min_gaussians if config.min_gaussians is None else config.min_gaussians
-                ),
-            },
-            "queries": results,
-        },
+        cameras = loaded.cameras.select([find_view(loaded.cameras, name, where) for name in wanted])
+    written = write_query_results(
+        out,
+        fq,
+        texts,
+        field_name=str(field),
+        gaussians=None if loaded is None else loaded.gaussians,
+        cameras=cameras,
+        mask_threshold=mask_threshold,
+        relevancy=relevancy,
+        raster=lifted_raster(semantic, str(field)),
     )
-    plural = "s" if len(indices) != 1 else ""
-    masks = f" and masks for {len(indices)} view{plural}" if indices else ""
-    stdout.print(f"wrote {out / 'results.json'}{masks}")
+    stdout.print(
+        _selection_table(f"thgs query {field} ({config.mode})", semantic, written.selections)
+    )
+    count = 0 if cameras is None else len(cameras)
+    masks = f" and masks for {count} view{'s' if count != 1 else ''}" if count else ""
+    stdout.print(f"wrote {written.results}{masks}")
 
 
 def pick(
@@ -226,11 +185,11 @@ def pick(
             cpu, cuda or mps (docs/rendering.md).
         verbose: log what is loaded.
     """
-    from thgs.export import write_json, write_mask_png, write_selection_ply
-    from thgs.field import FIELD_LEVELS
     from thgs.field_scene import find_view, open_field_scene
+    from thgs.hierarchy.levels import LEVEL_NAMES
+    from thgs.pipeline import lifted_raster
+    from thgs.results import pick_summary, write_pick_results
     from thgs.views import pick as pick_pixel
-    from thgs.views import selection_masks
 
     setup_logging(verbose)
     if level not in (0, 1, 2, 3):
@@ -238,50 +197,30 @@ def pick(
     semantic, loaded = open_field_scene(field, scene, device=device)
     index = find_view(loaded.cameras, view, loaded.cameras_path or loaded.ply_path)
     camera = loaded.cameras.select([index])
-    picked = pick_pixel(semantic, loaded.gaussians, camera, pixel)
+    raster = lifted_raster(semantic, str(field))
+    picked = pick_pixel(semantic, loaded.gaussians, camera, pixel, config=raster)
     if picked is None:
         raise ThgsError(f"{view}: no Gaussian at pixel ({pixel[0]}, {pixel[1]})")
-    region = picked.region(level)
+    summary = pick_summary(semantic, picked, level)
     table = Table(
         title=f"thgs pick {view} ({pixel[0]}, {pixel[1]}): Gaussian {picked.gaussian}",
         title_justify="left",
     )
     for column in ("level", "region", "Gaussians", ""):
         table.add_column(column)
-    for k, name in enumerate(FIELD_LEVELS):
+    for k, name in enumerate(LEVEL_NAMES):
         mark = "← picked" if k == level else ""
         size = int(semantic.sizes(k)[picked.regions[k]])
         table.add_row(f"{k} {name}", str(picked.regions[k]), f"{size:,}", mark)
     stdout.print(table)
-    children = semantic.children(level, region).tolist() if level > 0 else []
-    parent = semantic.parent(level, region) if level < 3 else None
     if level > 0:
-        stdout.print(f"children at level {level - 1}: {children}")
-    members = semantic.labels[:, level] == region
+        stdout.print(f"children at level {level - 1}: {summary['children']}")
     if out is None:
         return
-    stem = camera.stems[0]
-    mask_path = out / f"{stem}-{FIELD_LEVELS[level]}-{region}.png"
-    ply_path = out / f"{FIELD_LEVELS[level]}-{region}.ply"
-    write_mask_png(mask_path, selection_masks(loaded.gaussians, camera, members))
-    write_selection_ply(ply_path, loaded.gaussians, members)
-    write_json(
-        out / "pick.json",
-        {
-            "field": str(field),
-            "view": stem,
-            "pixel": list(picked.pixel),
-            "gaussian": picked.gaussian,
-            "regions": dict(zip(FIELD_LEVELS, picked.regions)),
-            "level": level,
-            "region": region,
-            "gaussians": int(members.sum()),
-            "parent": parent,
-            "children": children,
-            "files": [str(mask_path), str(ply_path)],
-        },
+    written = write_pick_results(
+        out, semantic, loaded.gaussians, camera, picked, level, field_name=str(field), raster=raster
     )
-    stdout.print(f"wrote {out / 'pick.json'}, {mask_path.name} and {ply_path.name}")
+    stdout.print(f"wrote {written.json}, {written.mask.name} and {written.ply.name}")
 
 
 def export(
@@ -322,9 +261,10 @@ def export(
         text_model: a local folder with the text model, instead of the default location.
         verbose: log what is loaded.
     """
-    from thgs.export import write_json, write_labels, write_region_ply, write_selection_ply
-    from thgs.field import FIELD_LEVELS
+    from thgs.export import write_labels, write_region_ply
     from thgs.field_scene import open_field_scene
+    from thgs.hierarchy.levels import LEVEL_NAMES
+    from thgs.results import write_query_selections
 
     setup_logging(verbose)
     if not query and color_level is None and not labels:
@@ -338,24 +278,13 @@ def export(
     written: list[Path] = []
     if query:
         fq = _field_query(field, semantic, text_model, config)
-        selections = fq.select(list(query))
-        stdout.print(_selection_table(f"thgs export {field} ({config.mode})", semantic, selections))
-        summary = []
-        for selection, name in zip(selections, _unique_slugs(list(query))):
-            entry = selection.to_json(semantic)
-            if not selection.empty:
-                path = out / f"{name}.ply"
-                write_selection_ply(path, loaded.gaussians, selection.gaussians)
-                written.append(path)
-                entry["ply"] = str(path)
-            summary.append(entry)
-        write_json(
-            out / "selections.json",
-            {"field": str(field), "mode": config.mode, "queries": summary},
+        selections, paths = write_query_selections(
+            out, fq, query, loaded.gaussians, field_name=str(field)
         )
-        written.append(out / "selections.json")
+        stdout.print(_selection_table(f"thgs export {field} ({config.mode})", semantic, selections))
+        written += paths
     if color_level is not None:
-        path = out / f"regions-{FIELD_LEVELS[color_level]}.ply"
+        path = out / f"regions-{LEVEL_NAMES[color_level]}.ply"
         write_region_ply(path, loaded.gaussians, semantic, color_level, seed=seed)
         written.append(path)
     if labels:

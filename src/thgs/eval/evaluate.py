@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 
 from thgs.errors import InputError
-from thgs.eval.ground_truth import HIERARCHY_LEVELS, Hierarchy
+from thgs.eval.ground_truth import Hierarchy
 from thgs.eval.lerf_ovs import FrameLabels, read_lerf_labels
 from thgs.eval.metrics import matched_miou, purity
 from thgs.eval.rules import (
@@ -60,6 +60,7 @@ from thgs.eval.scannet import (
 )
 from thgs.eval.three_dovs import SegmentationSet, query_text
 from thgs.field_scene import find_view
+from thgs.hierarchy.levels import LEVEL_NAMES, RegionLevels
 from thgs.query import FieldQuery
 from thgs.render import RasterConfig
 from thgs.scene import Cameras, Gaussians
@@ -448,32 +449,35 @@ def evaluate_scannet(
     return results
 
 
-def evaluate_hierarchy(labels: np.ndarray, hierarchy: Hierarchy) -> ProtocolResult:
-    """Agreement of regions at levels 0–3 ([N, 4]) with a ground-truth hierarchy.
+def evaluate_hierarchy(levels: RegionLevels, hierarchy: Hierarchy) -> ProtocolResult:
+    """Agreement of regions at levels 0–3 with a ground-truth hierarchy, level k against level k.
 
     Returns:
         metrics ``miou_subpart``, ``miou_part``, ``miou_object`` (level k against ground-truth
         level k: :func:`thgs.eval.matched_miou`) and ``purity`` (level-0 superpoints against
         sub-parts); one item per level with the region and node counts.
+
+    Raises:
+        InputError: levels of another number of Gaussians than the hierarchy's.
     """
-    labels = np.asarray(labels)
-    if labels.ndim != 2 or labels.shape != (len(hierarchy), 4):
+    if len(levels) != len(hierarchy):
         raise InputError(
-            "labels", f"must be [{len(hierarchy)}, 4] for this hierarchy, got {list(labels.shape)}"
+            "levels", f"must be of the hierarchy's {len(hierarchy)} Gaussians, got {len(levels)}"
         )
-    truth = hierarchy.labels
+    labels, truth = levels.labels, hierarchy.labels
     metrics, items = {}, []
-    for k, name in enumerate(HIERARCHY_LEVELS, start=1):
-        score = matched_miou(labels[:, k], truth[:, k - 1])
+    for k in (1, 2, 3):
+        name = LEVEL_NAMES[k]
+        score = matched_miou(labels[:, k], truth[:, k])
         metrics[f"miou_{name}"] = score
         items.append(
             {
                 "level": k,
                 "truth": name,
                 "miou": score,
-                "regions": int(labels[:, k].max()) + 1,
-                "nodes": len(hierarchy.names[k - 1]),
+                "regions": levels.counts[k],
+                "nodes": len(hierarchy.names[k]),
             }
         )
-    metrics["purity"] = purity(labels[:, 0], truth[:, 0])
-    return ProtocolResult("hierarchy", metrics, items, {"superpoints": int(labels[:, 0].max()) + 1})
+    metrics["purity"] = purity(labels[:, 0], truth[:, 1])
+    return ProtocolResult("hierarchy", metrics, items, {"superpoints": levels.counts[0]})

@@ -1,26 +1,24 @@
-"""Progressive merging of superpoints into sub-parts, parts and objects (design §4.6).
+"""Progressive merging of superpoints into sub-parts, parts and objects (design §4.6), and
+the one hierarchy type every stage shares.
 
 merged = merge_levels(gaussians, superpoints, lifted, MergeConfig.lerf())
-merged.labels     # [N, 4] int32 region per Gaussian at levels 0–3
-merged.parents    # per level, the parent region of each region
-merged = group_repeated_parts(gaussians, merged, part_features)   # a table's legs: one part
+merged.levels.labels     # [N, 4] int32 region per Gaussian at levels 0–3 (RegionLevels)
+merged.levels.parents    # per level, the parent region of each region
+levels = group_repeated_parts(gaussians, merged.levels, part_features)   # a table's legs: one part
 """
 
 from thgs.hierarchy.adjacency import UnitGraph, coarsened_graph, gaussian_neighbors, unit_graph
 from thgs.hierarchy.affinity import MaskEvidence, Source, mask_evidence, pair_affinity
-from thgs.hierarchy.merge import (
-    MergeConfig,
-    MergedLevels,
-    merge_levels,
-    parents_of,
-    renumber_by_units,
-)
+from thgs.hierarchy.levels import LEVEL_NAMES, RegionLevels
+from thgs.hierarchy.merge import MergeConfig, MergeResult, merge_levels, renumber_by_units
 from thgs.hierarchy.repeats import RepeatConfig, group_repeated_parts, repeated_part_pairs
 
 __all__ = [
+    "LEVEL_NAMES",
     "MaskEvidence",
     "MergeConfig",
-    "MergedLevels",
+    "MergeResult",
+    "RegionLevels",
     "RepeatConfig",
     "Source",
     "UnitGraph",
@@ -30,7 +28,6 @@ __all__ = [
     "mask_evidence",
     "merge_levels",
     "pair_affinity",
-    "parents_of",
     "renumber_by_units",
     "repeated_part_pairs",
     "unit_graph",

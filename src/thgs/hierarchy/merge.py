@@ -44,10 +44,11 @@ import torch
 from thgs.errors import InputError
 from thgs.hierarchy.adjacency import UnitGraph, coarsened_graph, gaussian_neighbors, unit_graph
 from thgs.hierarchy.affinity import MaskEvidence, Source, mask_evidence, pair_affinity
+from thgs.hierarchy.levels import RegionLevels
 from thgs.lift import ViewLift
 from thgs.scene.gaussians import Gaussians
 
-__all__ = ["MergeConfig", "MergedLevels", "merge_levels", "parents_of", "renumber_by_units"]
+__all__ = ["MergeConfig", "MergeResult", "merge_levels", "renumber_by_units"]
 
 log = logging.getLogger(__name__)
 
@@ -140,25 +141,19 @@ class MergeConfig:
 
 
 @dataclass(frozen=True, eq=False)
-class MergedLevels:
-    """Region ids of every Gaussian at levels 0–3.
+class MergeResult:
+    """What :func:`merge_levels` returns.
 
     Attributes:
-        labels: [N, 4] int32: column 0 the superpoints, columns 1–3 the merged regions (sub-part,
-            part, object), each numbered 0 … R_k − 1 in order of their first unit.
-        parents: for nested levels, ``parents[k − 1]`` [R_{k−1}] int32 is the level-k region of
-            each level-(k − 1) region (``labels[:, k] == parents[k − 1][labels[:, k − 1]]``);
-            None for the ``independent`` ablation, whose levels need not nest.
+        levels: the regions at levels 0–3 (:class:`RegionLevels`): level 0 the superpoints,
+            levels 1–3 the merged regions (sub-part, part, object), each numbered 0 … R_k − 1
+            in order of their first unit; nested (``parents`` set) except for the
+            ``independent`` ablation.
         seconds: wall time per pass (``"adjacency"``, ``"level 1"`` …, ``"absorb"``).
     """
 
-    labels: np.ndarray
-    parents: tuple[np.ndarray, np.ndarray, np.ndarray] | None
+    levels: RegionLevels
     seconds: dict[str, float]
-
-    @property
-    def counts(self) -> tuple[int, ...]:
-        return tuple(int(self.labels[:, k].max()) + 1 for k in range(4))
 
 
 def _sources(
@@ -345,17 +340,6 @@ def renumber_by_units(regions: np.ndarray, units: np.ndarray) -> np.ndarray:
     return rank[regions].astype(np.int32)
 
 
-def parents_of(labels: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``parents[k − 1]`` [R_{k−1}] int32: the level-k region of each level-(k − 1) region of
-    nested [N, 4] ``labels``."""
-    parents = []
-    for k in range(1, 4):
-        parent = np.zeros(int(labels[:, k - 1].max()) + 1, dtype=np.int32)
-        parent[labels[:, k - 1]] = labels[:, k]
-        parents.append(parent)
-    return parents[0], parents[1], parents[2]
-
-
 def merge_levels(
     gaussians: Gaussians,
     superpoints: np.ndarray,
@@ -363,7 +347,7 @@ def merge_levels(
     config: MergeConfig = MergeConfig(),
     *,
     neighbors: np.ndarray | None = None,
-) -> MergedLevels:
+) -> MergeResult:
     """Levels 1–3 of the hierarchy from level-0 superpoints and the lifted s/m/l labels.
 
     Args:
@@ -375,8 +359,9 @@ def merge_levels(
             Gaussians, when the caller has it (computed otherwise).
 
     Returns:
-        :class:`MergedLevels`; in ``progressive`` and ``instance`` modes every level-k region lies
-        inside one level-(k + 1) region and counts never increase from level to level.
+        :class:`MergeResult`; in ``progressive`` and ``instance`` modes the levels nest (every
+        level-k region lies inside one level-(k + 1) region) and counts never increase from
+        level to level.
 
     Raises:
         InputError: superpoints of the wrong shape or not numbered 0 … S−1, a lift that does
@@ -439,7 +424,6 @@ def merge_levels(
             levels[1] = levels[2] = regions
         seconds["absorb"] = time.perf_counter() - started
     labels = np.stack(levels, axis=1).astype(np.int32)
-    parents = None if config.mode == "independent" else parents_of(labels)
-    merged = MergedLevels(labels=labels, parents=parents, seconds=seconds)
+    merged = RegionLevels.from_labels(labels, nested=config.mode != "independent")
     log.info("merged levels: %s regions", " → ".join(f"{c:,}" for c in merged.counts))
-    return merged
+    return MergeResult(levels=merged, seconds=seconds)

@@ -31,7 +31,8 @@ from scipy.sparse.csgraph import connected_components
 
 from thgs.errors import InputError
 from thgs.hierarchy.adjacency import gaussian_neighbors, unit_graph
-from thgs.hierarchy.merge import MergedLevels, parents_of, renumber_by_units
+from thgs.hierarchy.levels import RegionLevels
+from thgs.hierarchy.merge import renumber_by_units
 from thgs.scene.gaussians import Gaussians
 
 __all__ = ["RepeatConfig", "group_repeated_parts", "repeated_part_pairs"]
@@ -121,52 +122,52 @@ def repeated_part_pairs(
 
 def group_repeated_parts(
     gaussians: Gaussians,
-    merged: MergedLevels,
+    levels: RegionLevels,
     part_features: np.ndarray,
     config: RepeatConfig = RepeatConfig(),
     *,
     neighbors: np.ndarray | None = None,
-) -> MergedLevels:
+) -> RegionLevels:
     """The levels with the repeated parts of every object grouped at level 2.
 
     Args:
         gaussians: the N Gaussians (their centres define which regions touch).
-        merged: nested levels 0–3 of the N Gaussians (:func:`merge_levels`).
+        levels: nested levels 0–3 of the N Gaussians (:func:`merge_levels`' ``levels``).
         part_features: [R_2, D] float features of its level-2 regions (unit or zero rows,
             :func:`thgs.features.region_features` at level 2).
-        config: thresholds; ``enabled`` False returns ``merged`` unchanged.
+        config: thresholds; ``enabled`` False returns ``levels`` unchanged.
         neighbors: the [N, config.neighbors] output of
             :func:`thgs.hierarchy.gaussian_neighbors`, when the caller has it.
 
     Returns:
-        :class:`MergedLevels`: levels 0, 1, 3 as given; level 2 with joined regions, numbered in
-        order of their smallest level-1 region.
+        nested :class:`RegionLevels`: levels 0, 1, 3 as given; level 2 with joined regions,
+        numbered in order of their smallest level-1 region.
 
     Raises:
         InputError: levels that do not nest or are not of these Gaussians, or features not
             [R_2, D].
     """
-    labels = merged.labels
+    labels = levels.labels
     n = len(gaussians)
-    if merged.parents is None or labels.shape != (n, 4):
-        raise InputError("merged", f"must be nested levels of the {n} Gaussians")
+    if levels.parents is None or labels.shape != (n, 4):
+        raise InputError("levels", f"must be nested levels of the {n} Gaussians")
     parts = labels[:, 2].astype(np.int64)
-    count = merged.counts[2]
+    count = levels.counts[2]
     part_features = np.asarray(part_features)
     if part_features.ndim != 2 or len(part_features) != count:
         raise InputError("part_features", f"must be [R_2, D] with R_2 = {count} level-2 regions")
     if not config.enabled:
-        return merged
+        return levels
     if neighbors is None:
         neighbors = gaussian_neighbors(gaussians, config.neighbors)
     elif neighbors.shape != (n, config.neighbors):
         raise InputError("neighbors", f"must be [N, k] = [{n}, {config.neighbors}]")
     graph = unit_graph(parts, neighbors, count)
     touching = graph.pairs[graph.hops == 1]
-    pairs = repeated_part_pairs(touching, merged.parents[2], part_features, config)
+    pairs = repeated_part_pairs(touching, levels.parents[2], part_features, config)
     joined = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(count, count))
     groups, group = connected_components(joined, directed=False)
     out = labels.copy()
     out[:, 2] = renumber_by_units(group[parts], labels[:, 1])
     log.info("repeated parts: %d level-2 regions grouped into %d", count, groups)
-    return MergedLevels(labels=out, parents=parents_of(out), seconds=merged.seconds)
+    return RegionLevels.from_labels(out)

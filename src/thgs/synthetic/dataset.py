@@ -35,12 +35,13 @@ from PIL import Image
 
 from thgs._atomic import atomic_folder
 from thgs.errors import InputError
-from thgs.eval.ground_truth import HIERARCHY_LEVELS, write_hierarchy
+from thgs.eval.ground_truth import write_hierarchy
 from thgs.eval.lerf_ovs import FrameLabels, LabelledObject, write_lerf_labels
 from thgs.eval.polygons import mask_to_polygons
 from thgs.eval.scannet import PointLabels, write_scannet_labels
 from thgs.eval.three_dovs import SegmentationSet, write_3dovs_segmentations
 from thgs.guidance import write_embedding_space, write_view_guidance
+from thgs.hierarchy.levels import LEVEL_NAMES
 from thgs.render import render
 from thgs.scene import write_cameras_json, write_colmap, write_ply, write_transforms_json
 from thgs.synthetic.oracle import OracleConfig, ground_truth_maps, oracle_guidance
@@ -116,28 +117,31 @@ def evaluation_views(count: int, evaluate: int) -> list[int]:
 def label_categories(
     maps: np.ndarray, scene: SyntheticScene, min_pixels: int
 ) -> dict[str, tuple[int, list[int]]]:
-    """The LERF-OVS-style prompts of one frame: category → (hierarchy level, its nodes).
+    """The LERF-OVS-style prompts of one frame: category → (index into ``maps``, its nodes).
 
     Categories are the names of the objects (except the floor), of the parts named differently
     from their object, and of the sub-parts named differently from their part, among the nodes
     covering at least ``min_pixels`` pixels. A category's mask is the union of its nodes' pixels.
 
     Args:
-        maps: [3, H, W] the frame's ground-truth node ids (sub-part, part, object).
+        maps: [3, H, W] the frame's ground-truth node ids at levels 1, 2, 3 (sub-part, part,
+            object; :func:`thgs.synthetic.ground_truth_maps`).
     """
     hierarchy = scene.hierarchy
-    parents = (hierarchy.subpart_parent, hierarchy.part_parent)
+    parents = hierarchy.levels.parents
+    assert parents is not None  # ground truth always nests
     categories: dict[str, tuple[int, list[int]]] = {}
-    for level in (2, 1, 0):
+    for index in (2, 1, 0):
+        level = index + 1
         names = hierarchy.names[level]
-        counts = np.bincount(maps[level][maps[level] >= 0], minlength=len(names))
+        counts = np.bincount(maps[index][maps[index] >= 0], minlength=len(names))
         for node in np.flatnonzero(counts >= min_pixels):
             name = names[node]
-            if level == 2 and name == "floor":
+            if level == 3 and name == "floor":
                 continue
-            if level < 2 and name == hierarchy.names[level + 1][parents[level][node]]:
+            if level < 3 and name == hierarchy.names[level + 1][parents[level][node]]:
                 continue
-            categories.setdefault(name, (level, []))[1].append(int(node))
+            categories.setdefault(name, (index, []))[1].append(int(node))
     return categories
 
 
@@ -158,17 +162,17 @@ def _frame_labels(
 
 
 def _object_classes(scene: SyntheticScene) -> tuple[str, ...]:
-    return tuple(sorted(set(scene.hierarchy.names[2])))
+    return tuple(sorted(set(scene.hierarchy.names[3])))
 
 
 def _scannet_labels(scene: SyntheticScene) -> PointLabels:
     classes = _object_classes(scene)
     class_of_object = np.array(
-        [classes.index(name) + 1 for name in scene.hierarchy.names[2]] + [0], dtype=np.int64
+        [classes.index(name) + 1 for name in scene.hierarchy.names[3]] + [0], dtype=np.int64
     )
     return PointLabels(
         points=scene.gaussians.means.numpy().astype(np.float32),
-        labels=class_of_object[scene.hierarchy.labels[:, 2]],
+        labels=class_of_object[scene.hierarchy.labels[:, 3]],
         class_names={i + 1: name for i, name in enumerate(classes)},
     )
 
@@ -236,7 +240,7 @@ def _write(
 
     evaluated = evaluation_views(len(cameras), config.evaluation_views)
     classes = _object_classes(scene)
-    object_names = scene.hierarchy.names[2]
+    object_names = scene.hierarchy.names[3]
     class_objects = {
         name: [i for i, node in enumerate(object_names) if node == name] for name in classes
     }
@@ -274,7 +278,7 @@ def _write(
         "dataset": asdict(config),
         "embedding_space": encoder.space,
         "embedding_dim": encoder.dim,
-        "hierarchy_levels": list(HIERARCHY_LEVELS),
+        "hierarchy_levels": list(LEVEL_NAMES[1:]),
         "objects": list(scene.hierarchy.names[2]),
         "evaluation_views": [stems[i] for i in evaluated],
         "gaussians": len(scene.gaussians),

@@ -129,13 +129,14 @@ class LevelMasks:
 
 
 def ground_truth_maps(max_id: np.ndarray, hierarchy: Hierarchy) -> np.ndarray:
-    """[3, H, W] int32 ground-truth node ids (sub-part, part, object) per pixel.
+    """[3, H, W] int32 ground-truth node ids per pixel at levels 1, 2, 3 (sub-part, part,
+    object: SAM's s, m, l).
 
     Args:
         max_id: [H, W] index of each pixel's max-weight Gaussian, −1 where none.
         hierarchy: the per-Gaussian ground truth.
     """
-    padded = np.concatenate([hierarchy.labels, np.full((1, 3), -1, dtype=np.int32)])
+    padded = np.concatenate([hierarchy.labels[:, 1:], np.full((1, 3), -1, dtype=np.int32)])
     return np.moveaxis(padded[max_id], -1, 0).astype(np.int32)
 
 
@@ -157,8 +158,8 @@ def clean_masks(maps: np.ndarray, hierarchy: Hierarchy, min_pixels: int = 1) -> 
     """The 4-connected components of each level's ground-truth map (levels s, m, l), those
     under ``min_pixels`` pixels left out."""
     return [
-        _components(maps[level], hierarchy.names[level]).without_small(min_pixels).compact()
-        for level in range(3)
+        _components(maps[index], hierarchy.names[index + 1]).without_small(min_pixels).compact()
+        for index in range(3)
     ]
 
 
@@ -314,7 +315,7 @@ def apply_faults(
         masks = _split(masks, config.rate("split"), config.min_split_pixels, rng)
         masks = _drop(masks, config.rate("drop"), rng)
         masks = _jitter(masks, config.rate("jitter"), config.max_jitter, rng)
-        names_under = np.array([*hierarchy.names[level], None], dtype=object)[maps[level]]
+        names_under = np.array([*hierarchy.names[level + 1], None], dtype=object)[maps[level]]
         masks = _spurious(masks, names_under, config.rate("spurious"), config.spurious_radius, rng)
         faulty.append(masks.without_small(config.min_pixels).compact())
     return faulty

@@ -298,18 +298,9 @@ def generate_scene(config: SceneConfig) -> SyntheticScene:
     order = np.random.default_rng([config.seed, 4]).permutation(len(means_np))
     subpart_parent_np = np.asarray(subpart_parent, dtype=np.int32)
     part_parent_np = np.asarray(part_parent, dtype=np.int32)
-    sub_np = sub_np[order]
-    labels = np.full((len(sub_np), 3), -1, dtype=np.int32)
-    has = sub_np >= 0
-    labels[has, 0] = sub_np[has]
-    labels[has, 1] = subpart_parent_np[sub_np[has]]
-    labels[has, 2] = part_parent_np[labels[has, 1]]
-    hierarchy = Hierarchy(
-        labels=labels,
-        names=tuple(tuple(level) for level in names),  # type: ignore[arg-type]
-        subpart_parent=subpart_parent_np,
-        part_parent=part_parent_np,
-    ).check(source="synthetic")
+    hierarchy = Hierarchy.from_subparts(
+        sub_np[order], subpart_parent_np, part_parent_np, names, source="synthetic"
+    )
 
     k = (config.sh_degree + 1) ** 2
     sh = np.zeros((len(order), k, 3), dtype=np.float32)

@@ -21,8 +21,8 @@ import numpy as np
 
 from thgs.device import resolve_device
 from thgs.errors import ThgsError
-from thgs.field import FIELD_LEVELS
 from thgs.field_scene import open_field_scene
+from thgs.hierarchy.levels import LEVEL_NAMES
 from thgs.query import FieldQuery, default_threshold
 from thgs.scene import Scene
 from thgs.text import load_text_encoder
@@ -399,7 +399,7 @@ class ViewerApp:
             )
         selected = {(level, region) for level, region, _ in highlight.regions}
         rows = [
-            f"| {'✓' if (level, region) in selected else ''} | {FIELD_LEVELS[level]} {region} "
+            f"| {'✓' if (level, region) in selected else ''} | {LEVEL_NAMES[level]} {region} "
             f"| {score:.3f} | {int(state.field.sizes(level)[region]):,} |"
             for level, region, score in _ranking_with_selection(highlight)
         ]
@@ -412,10 +412,10 @@ class ViewerApp:
         if highlight is None or highlight.primary is None:
             return "Click on the scene to pick a region."
         level, region = highlight.primary
-        chain = [f"{FIELD_LEVELS[level]} {region}"]
+        chain = [f"{LEVEL_NAMES[level]} {region}"]
         for up in range(level, 3):
             region = state.field.parent(up, region)
-            chain.append(f"{FIELD_LEVELS[up + 1]} {region}")
+            chain.append(f"{LEVEL_NAMES[up + 1]} {region}")
         size = int(state.field.sizes(highlight.primary[0])[highlight.primary[1]])
         children = len(state.field.children(*highlight.primary)) if highlight.primary[0] > 1 else 0
         return (

@@ -31,7 +31,8 @@ import torch
 
 from thgs.errors import InputError
 from thgs.export import region_colors, slug, write_selection
-from thgs.field import FIELD_LEVELS, SemanticField
+from thgs.field import SemanticField
+from thgs.hierarchy.levels import LEVEL_NAMES
 from thgs.pick_index import PickIndex
 from thgs.query import FieldQuery, QueryConfig
 from thgs.render import render
@@ -409,7 +410,7 @@ class ViewerState:
         primary = self._primary("export")
         if self.highlight is not None and self.highlight.kind == "query":
             return slug(self.highlight.text)
-        return f"{FIELD_LEVELS[primary[0]]}-{primary[1]}"
+        return f"{LEVEL_NAMES[primary[0]]}-{primary[1]}"
 
     def export(self, folder: str | os.PathLike[str]) -> list[Path]:
         """Write the highlighted Gaussians to ``folder`` (:func:`thgs.export.write_selection`):
@@ -425,7 +426,7 @@ class ViewerState:
             "kind": highlight.kind,
             "text": highlight.text,
             "regions": [
-                {"level": level, "name": FIELD_LEVELS[level], "region": region, "relevancy": score}
+                {"level": level, "name": LEVEL_NAMES[level], "region": region, "relevancy": score}
                 for level, region, score in highlight.regions
             ],
             "space": self.field.space,

@@ -5,8 +5,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
-
 from thgs.eval.evaluate import evaluate_hierarchy
 from thgs.eval.ground_truth import read_hierarchy
 from thgs.eval.protocols import GroundTruthSource, Protocol, register_protocol, register_source
@@ -39,7 +37,7 @@ register_protocol(
             ("hierarchy", "purity"),
         ),
         evaluate=lambda c: [
-            evaluate_hierarchy(np.asarray(c.engine.regions.labels), read_hierarchy(c.ground_truth))
+            evaluate_hierarchy(c.engine.regions.levels, read_hierarchy(c.ground_truth))
         ],
     )
 )
