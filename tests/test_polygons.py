@@ -159,3 +159,23 @@ def test_larger_blob():
 def test_bad_input(mask):
     with pytest.raises(InputError, match="mask_to_polygons: expected an \\[H, W\\] bool mask"):
         mask_to_polygons(mask)
+
+
+def test_arbitrary_polygons_match_the_even_odd_reference_everywhere():
+    # real label polygons: non-integer vertices, self-intersections, parts outside the image
+    # above and below, vertices exactly on pixel-centre rows; only the rows the polygon spans are
+    # scanned, so the rows outside must stay empty and the rest match the all-pixel reference
+    rng = np.random.default_rng(5)
+    height, width = 23, 31
+    for case in range(60):
+        count = int(rng.integers(3, 9))
+        polygon = rng.uniform([-6, -6], [width + 6, height + 6], size=(count, 2))
+        if case % 3 == 0:
+            polygon[:, 1] = np.round(polygon[:, 1]) + 0.5  # on centre rows
+        if case % 5 == 0:
+            polygon[1, 1] = polygon[0, 1]  # a horizontal edge
+        expected = winding_numbers(polygon, height, width) % 2 == 1
+        np.testing.assert_array_equal(rasterize_polygon(polygon, height, width), expected)
+    far = np.array([[0.0, -9.0], [5.0, -9.0], [5.0, -2.0]])
+    assert not rasterize_polygon(far, height, width).any()
+    assert not rasterize_polygon(far + np.array([0.0, 40.0]), height, width).any()

@@ -13,6 +13,7 @@ from thgs.eval.rules import (
     langsplat_level,
     langsplat_localized,
     langsplat_mask,
+    langsplat_query,
     majority_filter,
     mask_iou,
     pixel_accuracy,
@@ -341,3 +342,28 @@ def test_scannet_scores_checks_inputs():
         scannet_scores(ids, ids, ones, [1, 2, -1])
     with pytest.raises(InputError, match="truth must be integer"):
         scannet_scores(ids, ids.astype(float), ones, [1, 2])
+
+
+def test_langsplat_query_is_the_three_rules_at_once():
+    # random maps with plateaus (ties between levels and inside a level) and random boxes: the
+    # shared smoothing gives exactly what the three functions give one by one
+    rng = np.random.default_rng(11)
+    for case in range(12):
+        levels, height, width = 3, int(rng.integers(2, 50)), int(rng.integers(2, 70))
+        relevancy = rng.random((levels, height, width))
+        if case % 2:
+            relevancy = np.round(relevancy * 3) / 3  # plateaus
+        if case % 3 == 0:
+            relevancy[1] = relevancy[0]  # a tie between levels
+        boxes = [tuple(rng.uniform(0, [width, height, width, height])) for _ in range(2)]
+        threshold = float(rng.uniform(0.2, 0.6))
+        chosen, mask, hit = langsplat_query(relevancy.astype(np.float32), boxes, threshold)
+        assert chosen == langsplat_level(relevancy.astype(np.float32))
+        np.testing.assert_array_equal(
+            mask, langsplat_mask(relevancy.astype(np.float32)[chosen], threshold)
+        )
+        assert hit == langsplat_localized(relevancy.astype(np.float32), boxes)
+    with pytest.raises(InputError, match="needs H, W ≥ 2"):
+        langsplat_query(np.zeros((3, 1, 5)), [(0, 0, 1, 1)])
+    with pytest.raises(InputError, match="boxes"):
+        langsplat_query(np.zeros((3, 4, 5)), [])

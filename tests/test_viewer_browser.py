@@ -75,6 +75,20 @@ def _canvas(page, path: Path) -> np.ndarray:
     return np.asarray(Image.open(path).convert("RGB"), dtype=np.int16)[:, :800]
 
 
+def _settled(page, path: Path, *, differs_from: np.ndarray | None = None) -> np.ndarray:
+    """The canvas once the picture stops changing (two screenshots 200 ms apart agree) and, with
+    ``differs_from``, has changed from that picture at all; the last one after 15 s."""
+    previous = None
+    for _ in range(75):
+        current = _canvas(page, path)
+        changed = differs_from is None or not np.array_equal(current, differs_from)
+        if previous is not None and changed and np.array_equal(current, previous):
+            return current
+        previous = current
+        page.wait_for_timeout(200)
+    return current
+
+
 def test_query_click_and_climb_in_headless_chromium(browser, small_field):
     app = start_viewer(small_field, host="127.0.0.1", port=0)
     artifacts = _artifacts()
@@ -83,8 +97,7 @@ def test_query_click_and_climb_in_headless_chromium(browser, small_field):
         page = browser.new_page()
         page.goto(f"http://127.0.0.1:{app.server.get_port()}/")
         page.get_by_text("4,000 Gaussians").wait_for(timeout=60_000)
-        page.wait_for_timeout(3_000)  # the splats arrive and are sorted
-        before = _canvas(page, artifacts / "1-opened.png")
+        before = _settled(page, artifacts / "1-opened.png")  # the splats arrive and are sorted
 
         _input(page, "Query").fill("teddy bear")
         page.get_by_role("button", name="Search").click()
@@ -93,8 +106,7 @@ def test_query_click_and_climb_in_headless_chromium(browser, small_field):
         assert state.highlight.kind == "query" and state.highlight.regions == expected.regions
         np.testing.assert_array_equal(state.highlight.gaussians, expected.gaussians)
         np.testing.assert_array_equal(app.splats.rgba(), pack_rgba(*state.colors()))
-        page.wait_for_timeout(3_000)
-        queried = _canvas(page, artifacts / "2-query-teddy-bear.png")
+        queried = _settled(page, artifacts / "2-query-teddy-bear.png", differs_from=before)
         # everything but the bear is dimmed: the picture darkens and changes over a large area
         changed = np.abs(queried - before).sum(axis=2) > 30
         assert changed.mean() > 0.05, f"only {changed.mean():.1%} of the scene's pixels changed"
@@ -117,8 +129,7 @@ def test_query_click_and_climb_in_headless_chromium(browser, small_field):
         page.get_by_role("button", name="Parent").click()
         page.get_by_text("Selected: part").wait_for(timeout=10_000)
         assert state.highlight.primary == (2, state.field.parent(1, sub_part))
-        page.wait_for_timeout(2_000)
-        _canvas(page, artifacts / "3-picked-part.png")
+        _settled(page, artifacts / "3-picked-part.png")
         page.close()
     finally:
         app.stop()

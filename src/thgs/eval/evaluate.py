@@ -44,9 +44,7 @@ from thgs.eval.metrics import matched_miou, purity
 from thgs.eval.rules import (
     OPENGAUSSIAN_LERF_PROMPTS,
     OPENGAUSSIAN_THRESHOLD,
-    langsplat_level,
-    langsplat_localized,
-    langsplat_mask,
+    langsplat_query,
     mask_iou,
     pixel_accuracy,
     scannet_scores,
@@ -229,9 +227,10 @@ def evaluate_lerf_langsplat(
     """LangSplat's 2D LERF-OVS protocol on rendered relevancy maps.
 
     Per frame and prompt, each level's per-Gaussian relevancy is rendered into the view
-    (:func:`thgs.views.relevancy_map`); :func:`thgs.eval.rules.langsplat_level` chooses a
-    level, :func:`~thgs.eval.rules.langsplat_mask` makes its mask, and
-    :func:`~thgs.eval.rules.langsplat_localized` checks the peak against the boxes.
+    (:func:`thgs.views.relevancy_map`); :func:`thgs.eval.rules.langsplat_query` chooses a
+    level (:func:`~thgs.eval.rules.langsplat_level`), makes its mask
+    (:func:`~thgs.eval.rules.langsplat_mask`) and checks the peak against the boxes
+    (:func:`~thgs.eval.rules.langsplat_localized`), smoothing each level once.
 
     Returns:
         metrics ``miou`` (flat mean over (frame, prompt)) and ``localization`` (share of
@@ -250,20 +249,19 @@ def evaluate_lerf_langsplat(
         sx, sy = width / frame.width, height / frame.height
         for q, text in enumerate(texts):
             stack = np.moveaxis(maps[:, :, :, q], 2, 0)
-            chosen = langsplat_level(stack)
-            predicted = langsplat_mask(stack[chosen], threshold=mask_threshold)
-            truth = frame.category_mask(text, height, width)
             boxes = [
                 (x1 * sx, y1 * sy, x2 * sx, y2 * sy)
                 for x1, y1, x2, y2 in frame.category_boxes(text)
             ]
+            chosen, predicted, localized = langsplat_query(stack, boxes, mask_threshold)
+            truth = frame.category_mask(text, height, width)
             items.append(
                 {
                     "frame": stem,
                     "prompt": text,
                     "level": levels[chosen],
                     "iou": mask_iou(predicted, truth),
-                    "localized": bool(langsplat_localized(stack, boxes)),
+                    "localized": localized,
                 }
             )
         if progress is not None:

@@ -31,16 +31,21 @@ def rasterize_polygon(vertices: np.ndarray, height: int, width: int) -> np.ndarr
         return mask
     x0, y0 = vertices[:, 0], vertices[:, 1]
     x1, y1 = np.roll(x0, -1), np.roll(y0, -1)
-    centres_x = np.arange(width) + 0.5
-    for v in range(height):
-        y = v + 0.5
-        crossing = (y0 <= y) != (y1 <= y)  # half-open in y: each crossing counted once
-        if not crossing.any():
-            continue
-        t = (y - y0[crossing]) / (y1[crossing] - y0[crossing])
-        xs = np.sort(x0[crossing] + t * (x1[crossing] - x0[crossing]))
-        inside = (np.searchsorted(xs, centres_x, side="right") % 2) == 1
-        mask[v] = inside
+    # only rows whose centre y has min(y) ≤ y < max(y) can cross an edge
+    first = max(0, int(np.ceil(y0.min() - 0.5)))
+    stop = min(height, max(first, int(np.ceil(y0.max() - 0.5))))
+    rows = np.arange(first, stop)[:, None]
+    y = rows + 0.5
+    crossing = (y0 <= y) != (y1 <= y)  # [R, K], half-open in y: each crossing counted once
+    row, edge = np.nonzero(crossing)
+    t = (y[row, 0] - y0[edge]) / (y1[edge] - y0[edge])
+    xs = x0[edge] + t * (x1[edge] - x0[edge])
+    # a centre is inside when an odd number of crossings lie at or left of it: each crossing
+    # toggles every column from the first centre at or right of it
+    first_column = np.searchsorted(np.arange(width) + 0.5, xs, side="left")
+    toggles = np.zeros((rows.shape[0], width + 1), dtype=np.int32)
+    np.add.at(toggles, (row, first_column), 1)
+    mask[first:stop] = (np.cumsum(toggles[:, :width], axis=1) % 2) == 1
     return mask
 
 

@@ -66,6 +66,7 @@ __all__ = [
     "langsplat_level",
     "langsplat_localized",
     "langsplat_mask",
+    "langsplat_query",
     "majority_filter",
     "mask_iou",
     "pixel_accuracy",
@@ -315,9 +316,32 @@ def majority_filter(mask: np.ndarray, *, radius: int = 3) -> np.ndarray:
     return 2 * on > area
 
 
-def _mixed(relevancy: np.ndarray) -> np.ndarray:
-    """LangSplat's per-level map: the raw map mixed half-half with its 30×30 box mean."""
-    return 0.5 * (box_filter(relevancy, _LANGSPLAT_WINDOW) + relevancy)
+def _mixed(relevancy: np.ndarray, smoothed: np.ndarray) -> np.ndarray:
+    """LangSplat's per-level map: the raw map mixed half-half with its 30×30 box mean
+    (``smoothed``, :func:`box_filter` of ``relevancy``)."""
+    return 0.5 * (smoothed + relevancy)
+
+
+def _mask_of_mixed(mixed: np.ndarray, threshold: float) -> np.ndarray:
+    shifted = mixed - mixed.min()
+    normalized = shifted / (shifted.max() + _LANGSPLAT_EPSILON)
+    scaled = np.clip(2.0 * normalized - 1.0, 0.0, 1.0)
+    return majority_filter(scaled > threshold)
+
+
+def _level_of(relevancy: np.ndarray, smoothed: list[np.ndarray]) -> int:
+    return int(np.argmax([_mixed(r, b).max() for r, b in zip(relevancy, smoothed)]))
+
+
+def _peak_in_boxes(smoothed: list[np.ndarray], boxes: np.ndarray) -> bool:
+    chosen = smoothed[int(np.argmax([level.max() for level in smoothed]))]
+    rows, cols = np.nonzero(chosen == chosen.max())
+    x_low = np.minimum(boxes[:, 0], boxes[:, 2])[:, None]
+    x_high = np.maximum(boxes[:, 0], boxes[:, 2])[:, None]
+    y_low = np.minimum(boxes[:, 1], boxes[:, 3])[:, None]
+    y_high = np.maximum(boxes[:, 1], boxes[:, 3])[:, None]
+    inside = (cols >= x_low) & (cols <= x_high) & (rows >= y_low) & (rows <= y_high)
+    return bool(inside.any())
 
 
 def langsplat_mask(relevancy: np.ndarray, threshold: float = 0.4) -> np.ndarray:
@@ -342,11 +366,8 @@ def langsplat_mask(relevancy: np.ndarray, threshold: float = 0.4) -> np.ndarray:
     relevancy = _real_maps("langsplat_mask", relevancy, 2, "an [H, W] relevancy map")
     if min(relevancy.shape) < 2:
         raise InputError("langsplat_mask", f"needs H, W ≥ 2, got {relevancy.shape}")
-    mixed = _mixed(relevancy)
-    shifted = mixed - mixed.min()
-    normalized = shifted / (shifted.max() + _LANGSPLAT_EPSILON)
-    scaled = np.clip(2.0 * normalized - 1.0, 0.0, 1.0)
-    return majority_filter(scaled > threshold)
+    smoothed = box_filter(relevancy, _LANGSPLAT_WINDOW)
+    return _mask_of_mixed(_mixed(relevancy, smoothed), threshold)
 
 
 def langsplat_level(relevancy: np.ndarray) -> int:
@@ -362,8 +383,7 @@ def langsplat_level(relevancy: np.ndarray) -> int:
         InputError: ``relevancy`` is not a finite non-empty [L, H, W] array.
     """
     relevancy = _real_maps("langsplat_level", relevancy, 3, "[L, H, W] relevancy maps")
-    peaks = [_mixed(level).max() for level in relevancy]
-    return int(np.argmax(peaks))
+    return _level_of(relevancy, [box_filter(level, _LANGSPLAT_WINDOW) for level in relevancy])
 
 
 def _checked_boxes(boxes: Sequence[tuple[float, float, float, float]]) -> np.ndarray:
@@ -407,15 +427,37 @@ def langsplat_localized(
     """
     relevancy = _real_maps("langsplat_localized", relevancy, 3, "[L, H, W] relevancy maps")
     boxes = _checked_boxes(boxes)
+    return _peak_in_boxes([box_filter(level, _LANGSPLAT_WINDOW) for level in relevancy], boxes)
+
+
+def langsplat_query(
+    relevancy: np.ndarray,
+    boxes: Sequence[tuple[float, float, float, float]],
+    threshold: float = 0.4,
+) -> tuple[int, np.ndarray, bool]:
+    """One query of LangSplat's protocol: :func:`langsplat_level`, then :func:`langsplat_mask`
+    of that level and :func:`langsplat_localized`, with each level's 30×30 box mean computed
+    once for the three (the same numbers, bit for bit, as calling them one by one).
+
+    Args:
+        relevancy: [L, H, W] relevancy of one query at each of L levels, H, W ≥ 2.
+        boxes: one or more (x1, y1, x2, y2) ground-truth boxes (:func:`langsplat_localized`).
+        threshold: the mask's cut (:func:`langsplat_mask`).
+
+    Returns:
+        ``(level index, [H, W] bool mask of that level, localization hit)``.
+
+    Raises:
+        InputError: what the three functions refuse.
+    """
+    relevancy = _real_maps("langsplat_query", relevancy, 3, "[L, H, W] relevancy maps")
+    if min(relevancy.shape[1:]) < 2:
+        raise InputError("langsplat_query", f"needs H, W ≥ 2, got {relevancy.shape[1:]}")
+    boxes = _checked_boxes(boxes)
     smoothed = [box_filter(level, _LANGSPLAT_WINDOW) for level in relevancy]
-    chosen = smoothed[int(np.argmax([level.max() for level in smoothed]))]
-    rows, cols = np.nonzero(chosen == chosen.max())
-    x_low = np.minimum(boxes[:, 0], boxes[:, 2])[:, None]
-    x_high = np.maximum(boxes[:, 0], boxes[:, 2])[:, None]
-    y_low = np.minimum(boxes[:, 1], boxes[:, 3])[:, None]
-    y_high = np.maximum(boxes[:, 1], boxes[:, 3])[:, None]
-    inside = (cols >= x_low) & (cols <= x_high) & (rows >= y_low) & (rows <= y_high)
-    return bool(inside.any())
+    chosen = _level_of(relevancy, smoothed)
+    mask = _mask_of_mixed(_mixed(relevancy[chosen], smoothed[chosen]), threshold)
+    return chosen, mask, _peak_in_boxes(smoothed, boxes)
 
 
 @dataclass(frozen=True)
