@@ -142,8 +142,10 @@ def test_demo_builds_queries_and_reports(tmp_path, capsys):
     assert report["generated"] is True
     assert [q["text"] for q in report["queries"]] == ["mug", "table"]
     for query in report["queries"]:
-        assert (out / query["image"]).is_file() and len(query["regions"]) == 3
+        assert (out / query["image"]).is_file() and len(query["regions"]) >= 1
         assert 0.0 <= query["iou"] <= 1.0 and 0.0 <= query["best_iou"] <= 1.0
+        # the automatic selection answers an object's name at least as well as the paper's
+        assert query["iou"] >= query["paper_iou"] and "reason" not in query
     assert [q["level"] for q in report["queries"]] == [3, 3]  # mug and table are objects
     assert set(report["miou"]) == {"subpart", "part", "object"}
     assert all(0.0 < value <= 1.0 for value in report["miou"].values())
@@ -193,7 +195,7 @@ def test_query_prints_regions_and_writes_masks(small_dataset, small_field, tmp_p
     assert "mug" in stdout and "teddy bear" in stdout
     results = json.loads((out / "results.json").read_text())
     assert [q["text"] for q in results["queries"]] == ["mug", "teddy bear"]
-    assert results["config"]["mode"] == "reference"
+    assert results["config"]["mode"] == "auto"
     field = load_field(small_field)
     fq = FieldQuery(field, load_text_encoder(field.space))
     for entry, selection in zip(results["queries"], fq.select(["mug", "teddy bear"])):
@@ -337,6 +339,7 @@ def test_eval_runs_every_protocol_of_a_synthetic_dataset(
     protocols = [result["protocol"] for result in report["results"]]
     assert protocols == [
         "lerf",
+        "lerf-paper",
         "lerf-langsplat",
         "lerf-opengaussian",
         "3dovs",
@@ -347,9 +350,11 @@ def test_eval_runs_every_protocol_of_a_synthetic_dataset(
     # every (frame, category) of the label files is scored once
     frames = sorted((small_dataset / "label").glob("*.json"))
     expected = [(f.stem, c) for f in frames for c in read_lerf_labels(f).categories]
-    for name in ("lerf", "lerf-langsplat", "lerf-opengaussian"):
+    for name in ("lerf", "lerf-paper", "lerf-langsplat", "lerf-opengaussian"):
         assert [(i["frame"], i["prompt"]) for i in results[name]["items"]] == expected
         assert all(0.0 <= i["iou"] <= 1.0 for i in results[name]["items"])
+    assert results["lerf"]["settings"]["selection"] == "auto"
+    assert results["lerf-paper"]["settings"]["selection"] == "paper"
     # the hierarchy protocol is the field's matched mIoU against the ground truth
     field = load_field(small_field)
     truth = read_hierarchy(small_dataset / "ground_truth.safetensors").labels

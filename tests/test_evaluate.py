@@ -134,7 +134,7 @@ def test_lerf_perfect_selection_scores_one_and_reference_pools_both(scene):
 
     # the paper's selection pools levels 2 and 3 (top 3 each, best 3 kept): with only two
     # regions per level it always keeps the other patch too, so IoU = |own| / |both|
-    reference = FieldQuery(_regions(), _TableEncoder())
+    reference = FieldQuery(_regions(), _TableEncoder(), QueryConfig(mode="paper"))
     result = evaluate_lerf(reference, gaussians, cameras, frames)
     both = (mug | bear).sum()
     expected_iou = {"mug": mug.sum() / both, "bear": bear.sum() / both}
@@ -145,6 +145,10 @@ def test_lerf_perfect_selection_scores_one_and_reference_pools_both(scene):
     for item in result.items:
         assert item["accuracy"] == pytest.approx(expected_acc[item["prompt"]])
     assert result.metrics["miou"] == pytest.approx(np.mean(list(expected_iou.values())))
+    # the automatic selection takes only the patch named like the query
+    result = evaluate_lerf(FieldQuery(_regions(), _TableEncoder()), gaussians, cameras, frames)
+    assert result.metrics == {"miou": 1.0, "accuracy": 1.0}
+    assert result.settings["selection"] == "auto"
 
 
 def test_lerf_category_of_several_polygons_is_their_union(scene):

@@ -21,7 +21,7 @@ from thgs.query import (
     default_threshold,
     relevancy,
     select,
-    select_reference,
+    select_paper,
     small_region_size,
 )
 from thgs.text import MINILM_SPACE, SpaceMismatchError
@@ -81,7 +81,7 @@ def _field() -> SemanticField:
     return SemanticField(levels, features, seen, "test", "sha256:" + "0" * 64, {}, {}).check()
 
 
-def test_reference_selection_pools_top_regions_of_levels_two_and_three():
+def test_paper_selection_pools_top_regions_of_levels_two_and_three():
     field = _field()
     canonical = np.stack([_unit(0, 0, 1)])
     query = _unit(1, 0, 0)
@@ -90,12 +90,12 @@ def test_reference_selection_pools_top_regions_of_levels_two_and_three():
     }
     # level 2 top 3: parts 0, 1, 2 (part 3 unseen); level 3: objects 0, 1; best 3 overall:
     expected = sorted(scores, key=lambda key: (-scores[key], key))[:3]
-    selection = select_reference(field, query, canonical)
+    selection = select_paper(field, query, canonical)
     assert [(level, region) for level, region, _ in selection.regions] == expected
     assert expected == [(2, 0), (3, 0), (2, 1)]
     np.testing.assert_array_equal(selection.gaussians, [1, 1, 1, 1, 0, 0, 0, 0])
     assert [s for _, _, s in selection.regions] == pytest.approx([scores[k] for k in expected])
-    one = select_reference(field, query, canonical, levels=(3,), per_level=1, keep=1)
+    one = select_paper(field, query, canonical, levels=(3,), per_level=1, keep=1)
     assert one.regions[0][:2] == (3, 0)
 
 
@@ -118,9 +118,9 @@ def test_threshold_mode_selects_everything_relevant_or_nothing():
     assert len(select(scores, QueryConfig(mode="threshold", level=3), threshold=0.3)) == 4
 
 
-def test_reference_mode_always_selects_something():
+def test_paper_mode_always_selects_something():
     scores = {2: np.array([0.01, 0.02]), 3: np.array([0.03])}
-    chosen = select(scores, QueryConfig())
+    chosen = select(scores, QueryConfig(mode="paper"))
     assert [(k, r) for k, r, _ in chosen] == [(3, 0), (2, 1), (2, 0)]
 
 
@@ -155,12 +155,13 @@ class _TableEncoder:
 def _encoder(space: str = "test") -> _TableEncoder:
     table = {phrase: _unit(0, 0, 1) for phrase in CANONICAL_PHRASES}
     table |= {"red": _unit(1, 0, 0), "green": _unit(0, 1, 0), "pinkish": _unit(1, 0.2, 0)}
+    table |= {"nothing": _unit(0, 0, -1)}
     return _TableEncoder(space, table)
 
 
 def test_field_query_batches_caches_and_matches_the_pure_functions():
     field, encoder = _field(), _encoder()
-    fq = FieldQuery(field, encoder)
+    fq = FieldQuery(field, encoder, QueryConfig(mode="paper"))
     canonical = encoder.encode(list(CANONICAL_PHRASES))
     np.testing.assert_allclose(
         fq.relevancy(["red", "green"], 2),
@@ -169,7 +170,7 @@ def test_field_query_batches_caches_and_matches_the_pure_functions():
     )
     red, green, red_again = fq.select(["red", "green", "red"])
     assert red is red_again
-    expected = select_reference(field, _unit(1, 0, 0), canonical)
+    expected = select_paper(field, _unit(1, 0, 0), canonical)
     assert [r[:2] for r in red.regions] == [r[:2] for r in expected.regions]
     assert [r[2] for r in red.regions] == pytest.approx([r[2] for r in expected.regions])
     np.testing.assert_array_equal(red.gaussians, expected.gaussians)
@@ -230,14 +231,15 @@ def test_threshold_mode_returns_nothing_for_an_irrelevant_text():
 
 def test_small_regions_can_be_excluded():
     field = _field()
-    fq = FieldQuery(field, _encoder())
+    paper = QueryConfig(mode="paper")
+    fq = FieldQuery(field, _encoder(), paper)
     # every level-2 region has 2 Gaussians, level-3 regions 4
     chosen = fq.select(["red"], fq.with_config(min_gaussians=3))[0]
     assert {level for level, _, _ in chosen.regions} == {3}
     assert fq.min_gaussians == 0  # the field does not say
     # by default the field's own small-region size (thres_merge) applies
     small = replace(field, config={"merge": {"min_region_gaussians": 3}})
-    fq = FieldQuery(small, _encoder())
+    fq = FieldQuery(small, _encoder(), paper)
     assert fq.min_gaussians == 3
     assert {level for level, _, _ in fq.select(["red"])[0].regions} == {3}
     everything = fq.select(["red"], fq.with_config(min_gaussians=0))[0]
@@ -268,3 +270,40 @@ def test_small_region_size_reads_the_recorded_merge_settings(caplog):
     with caplog.at_level(logging.WARNING, logger="thgs.query"):
         assert small_region_size(unreadable) == 0
     assert "field config: merge" in caplog.text and "min_region_gaussians" in caplog.text
+
+
+def test_auto_mode_takes_every_region_named_like_the_query_or_abstains():
+    field, encoder = _field(), _encoder()
+    fq = FieldQuery(field, encoder)  # auto is the default
+    assert fq.config.mode == "auto" and fq.config.searched_levels == (1, 2, 3)
+    # cosines with "red": levels 1 and 2 [1, 0.981, 0, unseen], level 3 [0.995, 0]; the median
+    # of the 8 seen regions is 0.981, so the cut is 1 − 0.15 · (1 − 0.981) ≈ 0.997
+    red = fq.select(["red"])[0]
+    assert [r[:2] for r in red.regions] == [(1, 0), (2, 0)] and red.reason is None
+    np.testing.assert_array_equal(red.gaussians, [1, 1, 0, 0, 0, 0, 0, 0])
+    for extent in (0.15, 0.5, 0.9, 0.99):  # against the rule written out
+        cos = {k: field.features[k - 1] @ _unit(1, 0, 0) for k in (1, 2, 3)}
+        seen = [(k, r) for k in (1, 2, 3) for r in np.flatnonzero(field.seen[k - 1])]
+        values = np.array([cos[k][r] for k, r in seen])
+        cut = values.max() - extent * (values.max() - np.median(values))
+        expected = {(k, int(r)) for (k, r), v in zip(seen, values) if v >= cut}
+        chosen = fq.select(["red"], fq.with_config(extent=extent))[0]
+        assert {r[:2] for r in chosen.regions} == expected
+        assert [r[2] for r in chosen.regions] == pytest.approx(
+            [fq.relevancy(["red"], k)[0][r] for k, r, _ in chosen.regions]
+        )
+    # an object named like the query at a coarser level than its parts: "green" is object 1
+    # (cosine 1) and its part 2 (0.995)
+    green = fq.select(["green"])[0]
+    assert [r[:2] for r in green.regions] == [(3, 1), (1, 2), (2, 2)]
+    # nothing reaches the relevancy the best region needs: abstain, saying why
+    strict = fq.with_config(threshold=0.9)
+    nothing = fq.select(["nothing"], strict)[0]
+    assert nothing.empty and not nothing.gaussians.any()
+    assert nothing.reason.startswith("nothing relevant to 'nothing': the best region scores 0.500")
+    assert nothing.to_json(field)["reason"] == nothing.reason
+    assert "reason" not in red.to_json(field)
+    with pytest.raises(InputError, match="auto mode needs"):
+        select({1: np.ones(2)}, QueryConfig(levels=(1,)))
+    with pytest.raises(InputError, match=r"extent"):
+        QueryConfig(extent=1.0).check()

@@ -78,7 +78,7 @@ def _iou(a: np.ndarray, b: np.ndarray) -> float:
     return float((a & b).sum() / (a | b).sum())
 
 
-@pytest.mark.parametrize("mode", ["reference", "level", "threshold"])
+@pytest.mark.parametrize("mode", ["auto", "paper", "level", "threshold"])
 def test_object_names_select_exactly_their_object(named, mode):
     _, hierarchy, _, fq = named
     names = hierarchy.level_names(3)
@@ -116,7 +116,10 @@ def test_nonsense_selects_nothing_in_threshold_mode(named, level):
     for selection in fq.select(list(NONSENSE), fq.with_config(mode="threshold", level=level)):
         assert selection.empty and not selection.gaussians.any(), selection.regions
     # while the paper's selection always returns its three regions
-    assert all(len(s.regions) == 3 for s in fq.select(list(NONSENSE)))
+    assert all(len(s.regions) == 3 for s in fq.select(list(NONSENSE), fq.with_config(mode="paper")))
+    # and the automatic one abstains, saying why
+    for selection in fq.select(list(NONSENSE)):
+        assert selection.empty and "nothing relevant to" in selection.reason, selection.regions
 
 
 def test_picking_a_subpart_climbs_to_its_part_and_object(named):

@@ -10,6 +10,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import torch
+from scipy import ndimage
 
 from thgs.errors import InputError
 from thgs.synthetic import (
@@ -26,6 +27,7 @@ from thgs.synthetic.oracle import (
     apply_faults,
     clean_masks,
     ground_truth_maps,
+    mask_context,
     mask_features,
     oracle_guidance,
     pool_default,
@@ -471,3 +473,50 @@ def test_feature_noise_sets_the_expected_cosine():
     cosine = np.sum(noisy * exact, axis=1).mean()
     # e + 0.5 g / √D with |g|² ≈ D: cos ≈ 1 / √(1 + 0.25)
     assert cosine == pytest.approx(1 / math.sqrt(1.25), abs=0.03)
+
+
+def test_context_mix_moves_each_mask_feature_towards_its_parent_and_surroundings(scene, view):
+    # severity 0, no noise: the s-level mask of a sub-part is (1 − c)·e(own) + c·e(context),
+    # its context the part above it and the most common other object in a 6-pixel ring around
+    max_id, maps = view
+    encoder = _FakeEncoder()
+    hierarchy = scene.hierarchy
+    clean = clean_masks(maps, hierarchy, min_pixels=10)
+    context = mask_context(clean[0], 0, maps, hierarchy, 6)
+    disk = np.add.outer(np.arange(-6, 7) ** 2, np.arange(-6, 7) ** 2) <= 36
+    for index in range(0, len(clean[0]), 7):
+        inside = clean[0].ids == index
+        part = np.bincount(maps[1][inside]).argmax()
+        own = np.bincount(maps[2][inside]).argmax()
+        ring = ndimage.binary_dilation(inside, structure=disk) & ~inside
+        around = maps[2][ring]
+        around = around[(around >= 0) & (around != own)]
+        expected = [hierarchy.names[2][part]]
+        if around.size:
+            expected.append(hierarchy.names[3][np.bincount(around).argmax()])
+        assert context[index] == tuple(expected)
+    # objects have no parent: only their surroundings
+    for words in mask_context(clean[2], 2, maps, hierarchy, 6):
+        assert len(words) <= 1
+    mix = 0.4
+    config = OracleConfig(severity=0.0, min_pixels=10, feature_noise=0.0, context_mix=mix)
+    guidance = oracle_guidance("frame_00001", max_id, hierarchy, encoder, config, 0)
+    first = guidance.segments[1][guidance.segments[1] >= 0].min()
+    for index in range(0, len(clean[0]), 7):
+        words = context[index]
+        around = encoder.encode(list(words)).astype(np.float64).mean(axis=0)
+        mixed = (1 - mix) * encoder.encode([clean[0].names[index]])[
+            0
+        ] + mix * around / np.linalg.norm(around)
+        np.testing.assert_allclose(
+            guidance.features[first + index], mixed / np.linalg.norm(mixed), atol=1e-6
+        )
+    # the knob at 0 is the name-perfect oracle, draw for draw
+    plain = oracle_guidance("frame_00001", max_id, hierarchy, encoder, OracleConfig(), 0)
+    same = oracle_guidance(
+        "frame_00001", max_id, hierarchy, encoder, OracleConfig(context_mix=0.0), 0
+    )
+    np.testing.assert_array_equal(plain.features, same.features)
+    for bad in ({"context_mix": -0.1}, {"context_mix": 1.5}, {"context_radius": 0}):
+        with pytest.raises(InputError, match="OracleConfig"):
+            OracleConfig(**bad)

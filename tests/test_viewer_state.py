@@ -119,7 +119,7 @@ def test_click_pixels_and_viewport_sizes():
     [
         ("best", QueryConfig(mode="level", level=2, top=1)),
         ("threshold", QueryConfig(mode="threshold", level=2, threshold=0.6)),
-        ("paper", QueryConfig(mode="reference")),
+        ("paper", QueryConfig(mode="paper")),
     ],
 )
 def test_a_query_highlights_what_the_query_api_selects(opened, mode, expected):
@@ -138,7 +138,8 @@ def test_a_query_highlights_what_the_query_api_selects(opened, mode, expected):
 
 def test_query_level_and_mode_changes_ask_again(state, opened):
     _, _, query = opened
-    state.ask("mug")
+    assert state.ask("mug").regions == query.select(["mug"], QueryConfig(mode="auto"))[0].regions
+    state.set_mode("best")
     state.set_level(2)
     expected = query.select(["mug"], QueryConfig(mode="level", level=2, top=1))[0]
     assert state.highlight.regions == expected.regions

@@ -398,7 +398,7 @@ class BenchReport:
             for chain in ORDERINGS:
                 if not all(v in variants for v in chain):
                     continue
-                scores = tuple(self.mean(preset, v, "lerf miou") for v in chain)
+                scores = tuple(self.mean(preset, v, "lerf-paper miou") for v in chain)
                 holds = all(a > b for a, b in itertools.pairwise(scores))
                 checks.append((preset, chain, scores, holds))
         return checks

@@ -1,8 +1,8 @@
 """The demo: a synthetic scene, its semantic field, a few text queries, a report and pictures.
 
 :func:`run_demo` generates a synthetic dataset once (cached), builds its field with the LERF
-preset, scores every level against the exact ground truth, runs text queries with the paper's
-selection and writes into ``out``::
+preset, scores every level against the exact ground truth, runs text queries with the automatic
+selection (and the paper's, for comparison) and writes into ``out``::
 
     field.thgs              the semantic field (thgs.field.load_field)
     report.json, report.md  per-level agreement with ground truth, timings, query results
@@ -78,7 +78,7 @@ class QueryResult:
 
     Attributes:
         text: the query.
-        regions: selected ``(level, region, relevancy)``, most relevant first.
+        regions: ``(level, region, relevancy)`` the automatic selection chose, closest first.
         selected: number of Gaussians selected.
         truth: number of Gaussians whose ground-truth name (at any level) is the query.
         iou: 3-D IoU of the selection with those Gaussians (NaN when there are none).
@@ -87,6 +87,8 @@ class QueryResult:
             name is not in the scene).
         best_iou: 3-D IoU of the single most relevant region of ``level`` (the ``level``
             selection mode) with the same Gaussians.
+        paper_iou: 3-D IoU of the paper's selection (top 3 of parts and objects).
+        reason: why the automatic selection chose nothing, else None.
     """
 
     text: str
@@ -97,6 +99,8 @@ class QueryResult:
     image: Path
     level: int
     best_iou: float
+    paper_iou: float
+    reason: str | None = None
 
 
 @dataclass(frozen=True)
@@ -159,6 +163,8 @@ class DemoReport:
                     "image": q.image.name,
                     "level": q.level,
                     "best_iou": None if np.isnan(q.best_iou) else q.best_iou,
+                    "paper_iou": None if np.isnan(q.paper_iou) else q.paper_iou,
+                    **({"reason": q.reason} if q.reason is not None else {}),
                 }
                 for q in self.queries
             ],
@@ -183,15 +189,19 @@ class DemoReport:
             )
         lines += [
             "",
-            "| query | paper's selection (level:region relevancy) | 3-D IoU "
-            "| best region of its level: 3-D IoU |",
-            "|---|---|---|---|",
+            "| query | automatic selection (level:region relevancy) | 3-D IoU "
+            "| paper's selection: 3-D IoU | best region of its level: 3-D IoU |",
+            "|---|---|---|---|---|",
         ]
         for q in self.queries:
-            regions = ", ".join(f"{lv}:{r} {s:.3f}" for lv, r, s in q.regions)
-            iou = "–" if np.isnan(q.iou) else f"{q.iou:.3f}"
-            best = "–" if np.isnan(q.best_iou) else f"{q.best_iou:.3f}"
-            lines.append(f"| {q.text} | {regions} | {iou} | {LEVEL_NAMES[q.level]}: {best} |")
+            regions = ", ".join(f"{lv}:{r} {s:.3f}" for lv, r, s in q.regions) or q.reason
+            iou, paper, best = (
+                "–" if np.isnan(value) else f"{value:.3f}"
+                for value in (q.iou, q.paper_iou, q.best_iou)
+            )
+            lines.append(
+                f"| {q.text} | {regions} | {iou} | {paper} | {LEVEL_NAMES[q.level]}: {best} |"
+            )
         timings = ", ".join(f"{stage} {seconds:.2f} s" for stage, seconds in self.timings.items())
         lines += [
             "",
@@ -365,7 +375,10 @@ def run_demo(
         # the coarsest level whose ground truth has this name (objects first)
         level = next((k for k in (3, 2, 1) if (names[k] == text).any()), 3)
         best = fq.select([text], fq.with_config(mode="level", level=level))[0]
-        iou, best_iou = (_iou(chosen.gaussians, wanted) for chosen in (selection, best))
+        paper = fq.select([text], fq.with_config(mode="paper"))[0]
+        iou, best_iou, paper_iou = (
+            _iou(chosen.gaussians, wanted) for chosen in (selection, best, paper)
+        )
         mask = selection_masks(scene.gaussians, camera, selection.gaussians)
         tinted = np.where(mask[..., None], 0.45 * rgb + 0.55 * _HIGHLIGHT, 0.55 * rgb)
         image = out / f"query-{slug(text)}.png"
@@ -381,6 +394,8 @@ def run_demo(
                 image=image,
                 level=level,
                 best_iou=best_iou,
+                paper_iou=paper_iou,
+                reason=selection.reason,
             )
         )
         logger.info(

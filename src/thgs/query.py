@@ -9,9 +9,16 @@ which equals ``min_i σ(t (φ·q − φ·c_i))`` and is computed in that stable 
 (0, 1); 0.5 means "no more like the query than like a generic phrase". Regions that no view saw
 have no feature and score 0, so they are never selected.
 
-Three ways to turn relevancies into a selection (:class:`QueryConfig`):
+Four ways to turn relevancies into a selection (:class:`QueryConfig`):
 
-- ``reference`` — the paper's evaluation: the 3 most relevant regions of level 2 and the 3 of
+- ``auto`` (the default) — decided from the query's own scores, with no per-scene setting:
+  abstain when no region at levels 1–3 reaches the space's relevancy threshold
+  (:func:`default_threshold`; the selection says why); otherwise take every region, at any
+  level, whose feature is about as close to the query as the closest one, measured against the
+  query's spread over the scene: cosine ≥ best − ``extent`` · (best − median) (``extent``
+  0.15). One part, an object split over several regions, a table's four legs, two mugs: all the
+  regions named like the query, at the level where they are so named (docs/query.md).
+- ``paper`` — the paper's evaluation: the 3 most relevant regions of level 2 and the 3 of
   level 3 are pooled, the 3 best of those six are kept, no threshold. Something is always
   selected, even for a query about nothing in the scene.
 - ``level`` — the ``top`` most relevant regions of one level: "the best object", "the best part".
@@ -27,6 +34,7 @@ every evaluation protocol.
 
 from __future__ import annotations
 
+import copy
 import logging
 from collections import OrderedDict
 from collections.abc import Sequence
@@ -49,10 +57,11 @@ __all__ = [
     "QueryConfig",
     "Regions",
     "Selection",
+    "abstain_reason",
     "default_threshold",
     "relevancy",
     "select",
-    "select_reference",
+    "select_paper",
     "small_region_size",
 ]
 
@@ -61,7 +70,7 @@ logger = logging.getLogger(__name__)
 CANONICAL_PHRASES = ("object", "things", "stuff", "texture")
 """LERF's canonical negatives, encoded in the field's space and passed as ``canonical``."""
 
-SelectionMode = Literal["reference", "level", "threshold"]
+SelectionMode = Literal["auto", "paper", "level", "threshold"]
 
 _THRESHOLDS = {MINILM_SPACE: 0.8}
 _CACHED_RESULTS = 256
@@ -127,13 +136,19 @@ class QueryConfig:
     """How relevancies become a selection (see the module docstring).
 
     Attributes:
-        mode: ``"reference"`` (the paper's evaluation), ``"level"`` or ``"threshold"``.
-        levels: reference mode: the levels pooled ((2, 3): parts and objects).
-        per_level: reference mode: regions taken from each pooled level (3).
-        keep: reference mode: regions kept from the pool by relevancy (3).
+        mode: ``"auto"`` (decided per query), ``"paper"`` (the paper's evaluation),
+            ``"level"`` or ``"threshold"``.
+        levels: auto and paper modes: the levels searched ((1, 2, 3) for auto; the paper pools
+            (2, 3): parts and objects).
+        per_level: paper mode: regions taken from each pooled level (3).
+        keep: paper mode: regions kept from the pool by relevancy (3).
+        extent: auto mode: how far below the best region's cosine, as a share of the best's
+            lead over the median region, a region may be and still be selected (0.15, chosen on
+            synthetic seeds 0–4; docs/query.md).
         level: level and threshold modes: the level searched (1 sub-parts, 2 parts, 3 objects).
         top: level mode: how many regions (1).
-        threshold: threshold mode: the relevancy a region needs; None: :func:`default_threshold`
+        threshold: threshold mode: the relevancy a region needs; auto mode: the relevancy the
+            best region needs, or the query is abstained from; None: :func:`default_threshold`
             of the field's space.
         min_gaussians: regions with fewer Gaussians are never selected (0: all may be); None:
             the field's small-region size (``config["merge"]["min_region_gaussians"]``, 20 for
@@ -143,10 +158,11 @@ class QueryConfig:
         temperature: t of :func:`relevancy` (10).
     """
 
-    mode: SelectionMode = "reference"
-    levels: tuple[int, ...] = (2, 3)
+    mode: SelectionMode = "auto"
+    levels: tuple[int, ...] | None = None
     per_level: int = 3
     keep: int = 3
+    extent: float = 0.15
     level: int = 3
     top: int = 1
     threshold: float | None = None
@@ -155,11 +171,12 @@ class QueryConfig:
 
     def check(self) -> QueryConfig:
         """Raise :class:`InputError` naming the first invalid setting; return ``self``."""
-        if self.mode not in ("reference", "level", "threshold"):
+        if self.mode not in ("auto", "paper", "level", "threshold"):
             raise InputError(
-                "QueryConfig.mode", f"must be reference, level or threshold, got {self.mode!r}"
+                "QueryConfig.mode",
+                f"must be auto, paper, level or threshold, got {self.mode!r}",
             )
-        levels = self.levels if self.mode == "reference" else (self.level,)
+        levels = self.searched_levels
         if not levels or any(
             isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k not in (1, 2, 3)
             for k in levels
@@ -174,12 +191,18 @@ class QueryConfig:
             raise InputError("QueryConfig.min_gaussians", f"must be ≥ 0, got {self.min_gaussians}")
         if not self.temperature > 0:
             raise InputError("QueryConfig.temperature", f"must be > 0, got {self.temperature}")
+        if not 0.0 <= self.extent < 1.0:
+            raise InputError("QueryConfig.extent", f"must be in [0, 1), got {self.extent}")
         return self
 
     @property
     def searched_levels(self) -> tuple[int, ...]:
         """The levels whose relevancies this mode reads."""
-        return tuple(self.levels) if self.mode == "reference" else (self.level,)
+        if self.mode in ("level", "threshold"):
+            return (self.level,)
+        if self.levels is not None:
+            return tuple(self.levels)
+        return (1, 2, 3) if self.mode == "auto" else (2, 3)
 
 
 @dataclass(frozen=True, eq=False)
@@ -188,14 +211,17 @@ class Selection:
 
     Attributes:
         text: the query ("" when the query was an embedding).
-        regions: ``(level, region, relevancy)`` triples, most relevant first; empty when nothing
-            was relevant enough (threshold mode).
+        regions: ``(level, region, relevancy)`` triples, most relevant first (auto mode: the
+            closest by cosine first); empty when nothing was relevant enough (auto and threshold
+            modes).
         gaussians: [N] bool, True for the members of any selected region.
+        reason: why nothing was selected (auto mode abstaining), else None.
     """
 
     text: str
     regions: tuple[tuple[int, int, float], ...]
     gaussians: np.ndarray
+    reason: str | None = None
 
     @property
     def empty(self) -> bool:
@@ -217,6 +243,7 @@ class Selection:
                 for level, region, score in self.regions
             ],
             "gaussians": int(self.gaussians.sum()),
+            **({"reason": self.reason} if self.reason is not None else {}),
         }
 
 
@@ -230,6 +257,7 @@ def select(
     config: QueryConfig,
     allowed: dict[int, np.ndarray] | None = None,
     threshold: float = 0.5,
+    similarities: dict[int, np.ndarray] | None = None,
 ) -> tuple[tuple[int, int, float], ...]:
     """Choose regions of one query from its relevancies.
 
@@ -237,20 +265,28 @@ def select(
         scores: level → [R_level] relevancies, for every level in ``config.searched_levels``.
         config: the selection mode and its settings.
         allowed: level → [R_level] bool, the regions that may be chosen (default: all).
-        threshold: threshold mode's relevancy, used when ``config.threshold`` is None.
+        threshold: threshold and auto modes' relevancy, used when ``config.threshold`` is None.
+        similarities: auto mode: level → [R_level] cosine of each region's feature with the
+            query (required there).
 
     Returns:
-        ``(level, region, relevancy)``, most relevant first; ties go to the lower level, then
-        the lower region id.
+        ``(level, region, relevancy)``, most relevant first (auto: closest first); ties go to
+        the lower level, then the lower region id. Empty when auto mode abstains (see
+        :func:`abstain_reason`) or nothing reaches the threshold.
     """
     config.check()
     candidates = {}
     for level in config.searched_levels:
         ok = np.ones(scores[level].shape, bool) if allowed is None else allowed[level]
         candidates[level] = np.flatnonzero(ok & (scores[level] > 0))
-    if config.mode == "reference":
+    cut = config.threshold if config.threshold is not None else threshold
+    if config.mode == "auto":
+        if similarities is None:
+            raise InputError("select", "auto mode needs the regions' cosine similarities")
+        return _select_auto(scores, similarities, candidates, config.extent, cut)
+    if config.mode == "paper":
         pool = []
-        for level in config.levels:
+        for level in config.searched_levels:
             for region in _ranked(scores[level], candidates[level])[: config.per_level]:
                 pool.append((-float(scores[level][region]), level, int(region)))
         chosen = sorted(pool)[: config.keep]
@@ -260,9 +296,41 @@ def select(
     if config.mode == "level":
         ranked = ranked[: config.top]
     else:
-        cut = config.threshold if config.threshold is not None else threshold
         ranked = ranked[scores[level][ranked] >= cut]
     return tuple((level, int(region), float(scores[level][region])) for region in ranked)
+
+
+def _select_auto(
+    scores: dict[int, np.ndarray],
+    similarities: dict[int, np.ndarray],
+    candidates: dict[int, np.ndarray],
+    extent: float,
+    threshold: float,
+) -> tuple[tuple[int, int, float], ...]:
+    """Auto mode (module docstring): nothing when no candidate's relevancy reaches
+    ``threshold``; else every candidate whose cosine is ≥ best − extent · (best − median)."""
+    pairs = [(level, region) for level, ids in candidates.items() for region in ids]
+    if not pairs or max(scores[level][region] for level, region in pairs) < threshold:
+        return ()
+    cosines = np.array([similarities[level][region] for level, region in pairs])
+    best = cosines.max()
+    cut = best - extent * (best - np.median(cosines))
+    chosen = sorted(
+        (-float(cosine), level, int(region))
+        for (level, region), cosine in zip(pairs, cosines)
+        if cosine >= cut
+    )
+    return tuple((level, region, float(scores[level][region])) for _, level, region in chosen)
+
+
+def abstain_reason(text: str, best: float, threshold: float) -> str:
+    """Why auto mode selected nothing for ``text``: its best region's relevancy ``best`` is
+    below ``threshold``."""
+    return (
+        f"nothing relevant to {text!r}: the best region scores {best:.3f}, below the "
+        f"{threshold:.3f} a region needs (relevancy against 'object', 'things', 'stuff', "
+        "'texture')"
+    )
 
 
 @dataclass(frozen=True, eq=False)
@@ -418,6 +486,13 @@ class FieldQuery:
             self.regions.seen[level - 1],
         )
 
+    def similarity(self, texts: Sequence[str], level: int) -> np.ndarray:
+        """[Q, R_level] cosine of every level-``level`` region's feature with every text (0 for
+        unseen regions, whose feature is zero)."""
+        level = self.regions.checked_level(level)
+        features = self.regions.features[level - 1].astype(np.float64)
+        return self.embed(texts) @ features.T
+
     def gaussian_relevancy(self, text: str, level: int, temperature: float = 10.0) -> np.ndarray:
         """[N] float64: each Gaussian carries its level-``level`` region's relevancy for
         ``text`` (what a relevancy map renders)."""
@@ -453,12 +528,29 @@ class FieldQuery:
             scores = {
                 k: self.relevancy(todo, k, config.temperature) for k in config.searched_levels
             }
+            cosines = (
+                {k: self.similarity(todo, k) for k in config.searched_levels}
+                if config.mode == "auto"
+                else None
+            )
             for q, text in enumerate(todo):
                 regions = select(
-                    {k: s[q] for k, s in scores.items()}, config, allowed, self.threshold
+                    {k: s[q] for k, s in scores.items()},
+                    config,
+                    allowed,
+                    self.threshold,
+                    None if cosines is None else {k: c[q] for k, c in cosines.items()},
                 )
+                reason = None
+                if config.mode == "auto" and not regions:
+                    best = max(
+                        (float(scores[k][q][allowed[k]].max(initial=0.0)) for k in scores),
+                        default=0.0,
+                    )
+                    cut = config.threshold if config.threshold is not None else self.threshold
+                    reason = abstain_reason(text, best, cut)
                 selection = Selection(
-                    text, regions, self.gaussians_of([(k, r) for k, r, _ in regions])
+                    text, regions, self.gaussians_of([(k, r) for k, r, _ in regions]), reason
                 )
                 self._remember((text, config), selection)
                 logger.debug(
@@ -491,6 +583,14 @@ class FieldQuery:
         """This query's default config with ``changes`` applied (checked)."""
         return replace(self.config, **changes).check()
 
+    def using(self, **changes: Any) -> FieldQuery:
+        """The same engine (regions, encoder, caches shared) whose default config has
+        ``changes`` applied: e.g. ``engine.using(mode="paper")`` scores the paper's rule where a
+        protocol takes the engine's default."""
+        other = copy.copy(self)
+        other.config = self.with_config(**changes)
+        return other
+
     def _remember(self, key: tuple[str, QueryConfig], selection: Selection) -> None:
         self._results[key] = selection
         self._results.move_to_end(key)
@@ -522,7 +622,7 @@ def _checked_texts(texts: Sequence[str]) -> list[str]:
     return texts
 
 
-def select_reference(
+def select_paper(
     field: SemanticField,
     query: np.ndarray,
     canonical: np.ndarray,
@@ -548,7 +648,7 @@ def select_reference(
         region id.
     """
     config = QueryConfig(
-        mode="reference", levels=levels, per_level=per_level, keep=keep, temperature=temperature
+        mode="paper", levels=levels, per_level=per_level, keep=keep, temperature=temperature
     ).check()
     scores = {
         level: relevancy(

@@ -201,15 +201,18 @@ def demo(
             f"{report.miou[k]:.3f}",
         )
     stdout.print(levels)
-    queries = Table(title="text queries (the paper's selection)", title_justify="left")
-    for column in ("query", "Gaussians", "3-D IoU", "best region of its level", "picture"):
+    queries = Table(title="text queries (the automatic selection)", title_justify="left")
+    columns = ("query", "Gaussians", "3-D IoU", "paper's: 3-D IoU", "best region of its level")
+    for column in (*columns, "picture"):
         queries.add_column(column)
     for result in report.queries:
-        iou = "–" if math.isnan(result.iou) else f"{result.iou:.3f}"
-        best = "–" if math.isnan(result.best_iou) else f"{result.best_iou:.3f}"
+        iou, paper, best = (
+            "–" if math.isnan(value) else f"{value:.3f}"
+            for value in (result.iou, result.paper_iou, result.best_iou)
+        )
         level = ("sub-part", "part", "object")[result.level - 1]
         queries.add_row(
-            result.text, f"{result.selected:,}", iou, f"{level}: {best}", result.image.name
+            result.text, f"{result.selected:,}", iou, paper, f"{level}: {best}", result.image.name
         )
     stdout.print(queries)
     stdout.print(

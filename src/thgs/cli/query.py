@@ -13,7 +13,7 @@ from thgs.errors import InputError, ThgsError
 
 __all__ = ["export", "pick", "query"]
 
-Mode = Literal["reference", "level", "threshold"]
+Mode = Literal["auto", "paper", "level", "threshold"]
 Device = Literal["auto", "cpu", "cuda", "mps"]
 
 
@@ -27,9 +27,10 @@ def _query_config(
     from thgs.query import QueryConfig
 
     if mode is None:
-        mode = "reference" if level is None else "level"
-    if mode == "reference" and level is not None:
-        raise InputError("--level", "the reference mode pools levels 2 and 3; use --mode level")
+        mode = "auto" if level is None else "level"
+    if mode in ("auto", "paper") and level is not None:
+        searched = "levels 1–3" if mode == "auto" else "levels 2 and 3"
+        raise InputError("--level", f"the {mode} mode searches {searched}; use --mode level")
     return QueryConfig(
         mode=mode,
         level=3 if level is None else level,
@@ -59,7 +60,9 @@ def _selection_table(title: str, field, selections) -> Table:
             for k, r, score in selection.regions
         )
         table.add_row(
-            selection.text, regions or "nothing relevant", f"{int(selection.gaussians.sum()):,}"
+            selection.text,
+            regions or selection.reason or "nothing relevant",
+            f"{int(selection.gaussians.sum()):,}",
         )
     return table
 
@@ -91,12 +94,15 @@ def query(
     Args:
         field: the field file (thgs build).
         texts: one or more queries, e.g. mug "teddy bear".
-        mode: reference (the paper's: top 3 of levels 2 and 3, no threshold), level (the --top
+        mode: auto (per query: every region named like it, at any level, or nothing when
+            nothing is relevant), paper (the paper's: top 3 of levels 2 and 3, no threshold),
+            level (the --top
             best regions of --level) or threshold (every region of --level above --threshold,
-            possibly none). Default: reference, or level when --level is given.
+            possibly none). Default: auto, or level when --level is given.
         level: 1 sub-parts, 2 parts, 3 objects (level and threshold modes; default 3).
         top: level mode: how many regions.
-        threshold: threshold mode: relevancy needed (default: the embedding space's, 0.8 for
+        threshold: threshold mode: relevancy needed; auto mode: the relevancy the best region
+            needs (default: the embedding space's, 0.8 for
             MiniLM, 0.5 for CLIP).
         min_gaussians: never select regions with fewer Gaussians (default: the field's
             small-region size, 20 for the LERF preset; 0 to allow every region).

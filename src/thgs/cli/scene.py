@@ -114,6 +114,7 @@ def synth(
     views: int | None = None,
     severity: float = 0.5,
     feature_noise: float = 0.5,
+    context_mix: float = 0.0,
     evaluation_views: int = 4,
     overwrite: bool = False,
     verbose: bool = False,
@@ -134,6 +135,8 @@ def synth(
         views: override the preset's number of views.
         severity: SAM-like fault rate multiplier for the oracle masks (0 = clean ground truth).
         feature_noise: noise on the oracle's text-embedding features.
+        context_mix: how much a mask's feature looks like its parent's and its surroundings'
+            names, as CLIP crops do (0 = name-perfect, up to 1; docs/synthetic.md).
         evaluation_views: views that get LERF-OVS / 3DOVS labels.
         overwrite: replace an existing dataset folder.
         verbose: log what is done.
@@ -159,7 +162,9 @@ def synth(
     start = time.perf_counter()
     scene = generate_scene(config)
     encoder = MiniLMEncoder()
-    oracle = OracleConfig(severity=severity, feature_noise=feature_noise, seed=seed)
+    oracle = OracleConfig(
+        severity=severity, feature_noise=feature_noise, context_mix=context_mix, seed=seed
+    )
     with Progress(console=stderr, transient=True) as bar:
         task = bar.add_task("rendering views", total=len(scene.cameras))
         summary = write_dataset(

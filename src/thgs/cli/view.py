@@ -21,7 +21,7 @@ def view(
     port: int = 8080,
     scene: Path | None = None,
     level: Literal[1, 2, 3] = 3,
-    mode: Literal["best", "threshold", "paper"] = "best",
+    mode: Literal["auto", "best", "threshold", "paper"] = "auto",
     threshold: float | None = None,
     text_model: Path | None = None,
     device: Literal["auto", "cpu", "cuda", "mps"] = "auto",
@@ -42,8 +42,9 @@ def view(
         port: the port; the next free one if it is taken.
         scene: the scene the field was built on, if not where the field says.
         level: the level shown first: 1 sub-parts, 2 parts, 3 objects.
-        mode: how a query selects: best (the best region of the level), threshold (every region
-            of the level above --threshold) or paper (top 3 of parts and objects).
+        mode: how a query selects: auto (every region named like the query, at any level, or
+            nothing: thgs query's default), best (the best region of the level), threshold
+            (every region of the level above --threshold) or paper (top 3 of parts and objects).
         threshold: relevancy for the threshold mode (default: the embedding space's).
         text_model: a local folder with the text model, instead of the default location.
         device: where to render: auto (a CUDA GPU if torch sees one, else MPS, else the CPU),

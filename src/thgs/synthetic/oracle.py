@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage
 
+from thgs.errors import InputError
 from thgs.eval.ground_truth import Hierarchy
 from thgs.guidance import ViewGuidance
 from thgs.text import TextEncoder
@@ -38,6 +39,7 @@ __all__ = [
     "apply_faults",
     "clean_masks",
     "ground_truth_maps",
+    "mask_context",
     "mask_features",
     "oracle_guidance",
     "pool_default",
@@ -79,6 +81,13 @@ class OracleConfig:
             1 keeps every ground-truth component).
         feature_noise: standard deviation of the noise added to a unit text embedding (as a
             vector norm: ``f = normalize(e + feature_noise · g / √D)``, g standard normal).
+        context_mix: how much a mask's feature looks like its context, as CLIP's crop of a part
+            looks like its object: ``e = (1 − c) · e(name) + c · e(context)`` before the noise,
+            where ``e(context)`` is the normalized mean of the embeddings of the mask's parent
+            (the next level's node under most of it; none for objects) and of its surroundings
+            (the object under most of a ring of ``context_radius`` pixels around it, its own
+            object excluded). 0 (the default) keeps name-perfect features; in [0, 1].
+        context_radius: width in pixels of the ring that defines a mask's surroundings.
         seed: base of every random draw (view i uses ``[seed, i]``).
     """
 
@@ -89,7 +98,19 @@ class OracleConfig:
     min_split_pixels: int = 64
     min_pixels: int = 10
     feature_noise: float = 0.5
+    context_mix: float = 0.0
+    context_radius: int = 6
     seed: int = 0
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.context_mix <= 1.0:
+            raise InputError(
+                "OracleConfig", f"context_mix must be in [0, 1], got {self.context_mix}"
+            )
+        if self.context_radius < 1:
+            raise InputError(
+                "OracleConfig", f"context_radius must be ≥ 1 pixel, got {self.context_radius}"
+            )
 
     def rate(self, name: str) -> float:
         return getattr(self.rates, name) * self.severity
@@ -356,15 +377,80 @@ def pool_default(levels: list[LevelMasks]) -> tuple[LevelMasks, list[tuple[int, 
 
 
 def mask_features(
-    names: tuple[str, ...], encoder: TextEncoder, noise: float, rng: np.random.Generator
+    names: tuple[str, ...],
+    encoder: TextEncoder,
+    noise: float,
+    rng: np.random.Generator,
+    context: tuple[tuple[str, ...], ...] | None = None,
+    mix: float = 0.0,
 ) -> np.ndarray:
-    """[len(names), D] float32 unit rows: ``normalize(embed(name) + noise · g / √D)``."""
+    """[len(names), D] float32 unit rows: ``normalize(e + noise · g / √D)`` with
+    ``e = (1 − mix) · embed(name) + mix · normalize(mean(embed(c) for c in context))`` (just
+    ``embed(name)`` where a mask has no context or ``mix`` is 0).
+
+    Args:
+        names: each mask's name.
+        encoder: the text model.
+        noise: the noise's norm (:attr:`OracleConfig.feature_noise`).
+        rng: the view's random generator (one [len(names), D] normal draw).
+        context: per mask, the names of its context (:func:`mask_context`).
+        mix: :attr:`OracleConfig.context_mix`.
+    """
     embeddings = encoder.encode(list(names)).astype(np.float64)
     if len(names) == 0:
         return embeddings.astype(np.float32)
+    if mix > 0.0 and context is not None:
+        for i, words in enumerate(context):
+            if words:
+                around = encoder.encode(list(words)).astype(np.float64).mean(axis=0)
+                around /= np.linalg.norm(around)
+                embeddings[i] = (1.0 - mix) * embeddings[i] + mix * around
     dim = embeddings.shape[1]
     noisy = embeddings + noise * rng.normal(size=embeddings.shape) / math.sqrt(dim)
     return (noisy / np.linalg.norm(noisy, axis=1, keepdims=True)).astype(np.float32)
+
+
+def _majority(ids: np.ndarray, nodes: np.ndarray, count: int) -> np.ndarray:
+    """[count] int: the most common node ≥ 0 under each id ≥ 0 (−1 where none)."""
+    keep = (ids >= 0) & (nodes >= 0)
+    if not keep.any():
+        return np.full(count, -1, dtype=np.int64)
+    pairs, votes = np.unique(np.stack([ids[keep], nodes[keep]], axis=1), axis=0, return_counts=True)
+    order = np.lexsort((-votes, pairs[:, 0]))  # per id, most votes first (lowest node on ties)
+    pairs = pairs[order]
+    first = np.concatenate([[True], pairs[1:, 0] != pairs[:-1, 0]])
+    out = np.full(count, -1, dtype=np.int64)
+    out[pairs[first, 0]] = pairs[first, 1]
+    return out
+
+
+def mask_context(
+    masks: LevelMasks, level: int, maps: np.ndarray, hierarchy: Hierarchy, radius: int
+) -> tuple[tuple[str, ...], ...]:
+    """Per mask of ``masks`` (SAM level index ``level``: 0 s, 1 m, 2 l), the names of its
+    context: its parent (the level-above node under most of its pixels; none for objects) and
+    its surroundings (the object under most of a ``radius``-pixel ring around it, other than
+    the object under most of the mask)."""
+    count = len(masks)
+    parents = _majority(masks.ids, maps[level + 1], count) if level < 2 else np.full(count, -1)
+    own = _majority(masks.ids, maps[2], count)
+    disk = _disk(radius)
+    context = []
+    shape = masks.ids.shape
+    for index, box in enumerate(ndimage.find_objects(masks.ids + 1, max_label=count)):
+        words = []
+        if parents[index] >= 0:
+            words.append(hierarchy.names[level + 2][parents[index]])
+        if box is not None:
+            window = _grow(box, radius, shape)
+            inside = masks.ids[window] == index
+            ring = ndimage.binary_dilation(inside, structure=disk) & ~inside
+            around = maps[2][window][ring]
+            around = around[(around >= 0) & (around != own[index])]
+            if around.size:
+                words.append(hierarchy.names[3][int(np.bincount(around).argmax())])
+        context.append(tuple(words))
+    return tuple(context)
 
 
 def oracle_guidance(
@@ -391,7 +477,17 @@ def oracle_guidance(
     clean = clean_masks(maps, hierarchy, config.min_pixels)
     levels = apply_faults(clean, maps, hierarchy, config, rng)
     level_features = [
-        mask_features(masks.names, encoder, config.feature_noise, rng) for masks in levels
+        mask_features(
+            masks.names,
+            encoder,
+            config.feature_noise,
+            rng,
+            mask_context(masks, level, maps, hierarchy, config.context_radius)
+            if config.context_mix > 0
+            else None,
+            config.context_mix,
+        )
+        for level, masks in enumerate(levels)
     ]
     pooled, sources = pool_default(levels)
     pooled_features = (

@@ -51,10 +51,11 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
-QueryMode = Literal["best", "threshold", "paper"]
+QueryMode = Literal["auto", "best", "threshold", "paper"]
 ColorMode = Literal["scene", "regions", "relevancy"]
 
 QUERY_MODES: dict[str, str] = {
+    "auto": "every region named like the query, at any level, or nothing",
     "best": "the best region of the level",
     "threshold": "every region of the level above the threshold",
     "paper": "the paper's: top 3 of parts and objects",
@@ -110,7 +111,7 @@ class ViewerConfig:
     """
 
     level: int = 3
-    mode: QueryMode = "best"
+    mode: QueryMode = "auto"
     threshold: float | None = None
     color: ColorMode = "scene"
     dim_color: float = 0.3
@@ -235,8 +236,8 @@ class ViewerState:
 
     def query_config(self) -> QueryConfig:
         """The :class:`QueryConfig` of the current mode, level and threshold."""
-        if self.mode == "paper":
-            return QueryConfig(mode="reference")
+        if self.mode in ("auto", "paper"):
+            return QueryConfig(mode=self.mode)
         if self.mode == "threshold":
             return QueryConfig(mode="threshold", level=self.level, threshold=self.threshold)
         return QueryConfig(mode="level", level=self.level, top=1)
