@@ -126,7 +126,7 @@ def run_one(name: str, seed: int, args: argparse.Namespace) -> dict:
         "gaussians": len(scene.gaussians),
         "views": len(scene.cameras),
         "threads": torch.get_num_threads(),
-        "ground_truth_counts": [len(level) for level in scene.hierarchy.names],
+        "ground_truth_counts": [len(level) for level in scene.hierarchy.names.values()],
         "variants": results,
     }
 

@@ -407,13 +407,20 @@ def test_eval_refuses_a_dataset_without_ground_truth(small_field, tmp_path, caps
 def test_bench_compares_variants_on_a_reduced_scene(tmp_path, capsys):
     out = tmp_path / "bench"
     argv = ["bench", "-o", str(out), "--presets", "synth-small", "--gaussians", "3000"]
-    argv += ["--views", "6", "--cache", str(tmp_path / "cache")]
+    argv += ["--views", "6", "--cache", str(tmp_path / "cache"), "--context-mixes", "0.5"]
     argv += ["--variants", "full", "no progressive merging", "instance level only", "exact lifting"]
     code, stdout, err = run(argv, capsys)
     assert code == 0, err
-    assert "Paper orderings" in stdout
+    assert "Paper orderings" in stdout and "Selection across scenarios" in stdout
+    assert (tmp_path / "cache" / "synth-small-seed0-3000g-6v-context0.5").is_dir()
     report = json.loads((out / "bench.json").read_text())
     runs = {entry["variant"]: entry for entry in report["runs"]}
+    assert {(e["kind"], e["severity"], e["context_mix"]) for e in report["runs"]} == {
+        ("2dgs", 0.5, 0.5)
+    }
+    (cell,) = report["selection"]
+    assert cell["lerf miou"] == runs["full"]["quality"]["lerf miou"]
+    assert cell["lerf-paper miou"] == runs["full"]["quality"]["lerf-paper miou"]
     assert list(runs) == ["full", "no progressive merging", "instance level only", "exact lifting"]
     # the three latent-lifting variants share one lift; exact lifting has its own
     assert [runs[v]["lift_shared"] for v in runs] == [True, True, True, False]

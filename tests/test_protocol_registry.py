@@ -99,7 +99,8 @@ def test_a_registered_protocol_runs_everywhere(toy, small_dataset, small_field, 
     bench = BenchReport(
         runs=(
             VariantRun(
-                preset="p", seed=0, variant="full", gaussians=1, views=1, stages={"lift": 1.0},
+                preset="p", seed=0, variant="full", kind="2dgs", severity=0.5, context_mix=0.0,
+                gaussians=1, views=1, stages={"lift": 1.0},
                 lift_shared=False, seconds=1.0, peak_gib=0.1, gpu_peak_gib=None,
                 region_counts=(1, 1, 1, 1), quality={"toy share": 0.25}, evaluation_seconds=0.0,
             ),

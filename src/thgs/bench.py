@@ -148,7 +148,12 @@ class BenchConfig:
 
     Attributes:
         presets: synthetic presets (default :func:`default_presets`).
-        seeds: scene and oracle seeds; every (preset, seed) is one scene.
+        seeds: scene and oracle seeds; every (preset, seed, scenario) is one scene.
+        kinds: Gaussian kinds of the scenes (``"2dgs"``, ``"3dgs"``).
+        severities: the oracle's mask-fault severities (0 clean … 1 heavy).
+        context_mixes: the oracle's CLIP-likeness (:attr:`thgs.synthetic.OracleConfig.
+            context_mix`): 0 name-perfect features, 0.5 half the parent's and surroundings'
+            names; every setting is a scenario, so no rule is judged on clean features only.
         variants: names from :data:`VARIANTS`.
         gaussians, views: override the presets' sizes (quick runs).
         cache: where the synthetic datasets are kept (default :func:`thgs.demo.default_cache`).
@@ -160,6 +165,9 @@ class BenchConfig:
 
     presets: tuple[str, ...] = field(default_factory=default_presets)
     seeds: tuple[int, ...] = (0,)
+    kinds: tuple[str, ...] = ("2dgs",)
+    severities: tuple[float, ...] = (0.5,)
+    context_mixes: tuple[float, ...] = (0.0, 0.5)
     variants: tuple[str, ...] = tuple(VARIANTS)
     gaussians: int | None = None
     views: int | None = None
@@ -176,7 +184,22 @@ class BenchConfig:
                 raise InputError("variants", f"unknown {name!r}; choose from {', '.join(VARIANTS)}")
         if not self.presets or not self.variants or not self.seeds:
             raise InputError("BenchConfig", "needs at least one preset, seed and variant")
+        if not self.kinds or not self.severities or not self.context_mixes:
+            raise InputError("BenchConfig", "needs at least one kind, severity and context mix")
+        for kind in self.kinds:
+            if kind not in ("2dgs", "3dgs"):
+                raise InputError("kinds", f"must be 2dgs or 3dgs, got {kind!r}")
+        for value in self.severities:
+            if value < 0:
+                raise InputError("severities", f"must be ≥ 0, got {value}")
+        for value in self.context_mixes:
+            if not 0.0 <= value <= 1.0:
+                raise InputError("context_mixes", f"must be in [0, 1], got {value}")
         return self
+
+    def scenarios(self) -> list[tuple[str, float, float]]:
+        """Every (kind, severity, context mix) to build each preset and seed in."""
+        return list(itertools.product(self.kinds, self.severities, self.context_mixes))
 
 
 @dataclass(frozen=True)
@@ -185,6 +208,7 @@ class VariantRun:
 
     Attributes:
         preset, seed, variant: what was built.
+        kind, severity, context_mix: the scene's scenario (:attr:`BenchConfig.scenarios`).
         gaussians, views: scene size.
         stages: seconds per stage, ``lift`` first (see :func:`thgs.pipeline.build_field`).
         lift_shared: the lifting was run once and shared with other variants of this scene.
@@ -199,6 +223,9 @@ class VariantRun:
     preset: str
     seed: int
     variant: str
+    kind: str
+    severity: float
+    context_mix: float
     gaussians: int
     views: int
     stages: dict[str, float]
@@ -255,11 +282,26 @@ def _quality(report) -> dict[str, float]:
 
 
 def _bench_scene(
-    preset: str, seed: int, config: BenchConfig, encoder, progress: Progress | None
+    preset: str,
+    seed: int,
+    scenario: tuple[str, float, float],
+    config: BenchConfig,
+    encoder,
+    progress: Progress | None,
 ) -> list[VariantRun]:
     cache = config.cache if config.cache is not None else default_cache()
+    kind, severity, context_mix = scenario
     folder, _ = synthetic_dataset(
-        cache, preset, seed, config.gaussians, config.views, encoder, progress
+        cache,
+        preset,
+        seed,
+        config.gaussians,
+        config.views,
+        encoder,
+        progress,
+        kind=kind,
+        severity=severity,
+        context_mix=context_mix,
     )
     scene, guidance = open_synthetic_dataset(folder, encoder)
     scene = scene.to(resolve_device(config.device))
@@ -276,7 +318,7 @@ def _bench_scene(
             lift_groups.append((variant.superpoints.lift, [name]))
 
     runs = []
-    tag = f"{preset} seed {seed}"
+    tag = f"{preset} seed {seed} {kind} severity {severity:g} context {context_mix:g}"
     for lift, names in lift_groups:
         lifted, _, lift_peak, lift_gpu = measured(
             lambda lift=lift: lift_scene(scene, guidance, lift, cache=config.lift_cache)
@@ -311,6 +353,9 @@ def _bench_scene(
                     preset=preset,
                     seed=seed,
                     variant=name,
+                    kind=kind,
+                    severity=severity,
+                    context_mix=context_mix,
                     gaussians=len(scene.gaussians),
                     views=len(scene.cameras),
                     stages=stages,
@@ -324,11 +369,12 @@ def _bench_scene(
                 )
             )
             logger.info(
-                "%s, %s: %.1f s, LERF mIoU %.3f",
+                "%s, %s: %.1f s, LERF mIoU %.3f (paper's selection %.3f)",
                 tag,
                 name,
                 runs[-1].seconds,
                 runs[-1].quality.get("lerf miou", float("nan")),
+                runs[-1].quality.get("lerf-paper miou", float("nan")),
             )
         del lifted
     if progress is not None:
@@ -348,7 +394,8 @@ def run_bench(config: BenchConfig = BenchConfig(), progress: Progress | None = N
     runs = []
     for preset in config.presets:
         for seed in config.seeds:
-            runs.extend(_bench_scene(preset, seed, config, encoder, progress))
+            for scenario in config.scenarios():
+                runs.extend(_bench_scene(preset, seed, scenario, config, encoder, progress))
     machine = {
         "platform": platform.platform(),
         "processor": platform.processor() or platform.machine(),
@@ -403,9 +450,35 @@ class BenchReport:
                 checks.append((preset, chain, scores, holds))
         return checks
 
+    def selection_cells(self, variant: str = "full") -> list[dict[str, Any]]:
+        """Per (preset, kind, severity, context mix), the means over seeds of ``variant``'s
+        LERF mIoU under the automatic selection (``lerf``) and the paper's (``lerf-paper``),
+        and its 3D-OVS mIoU: the selection rule measured across scenarios."""
+        cells: dict[tuple[str, str, float, float], list[VariantRun]] = {}
+        for run in self.runs:
+            if run.variant == variant:
+                key = (run.preset, run.kind, run.severity, run.context_mix)
+                cells.setdefault(key, []).append(run)
+        rows = []
+        for (preset, kind, severity, context_mix), group in cells.items():
+            row: dict[str, Any] = {
+                "preset": preset,
+                "kind": kind,
+                "severity": severity,
+                "context_mix": context_mix,
+                "seeds": len(group),
+            }
+            for key in ("lerf miou", "lerf-paper miou", "3dovs miou"):
+                row[key] = float(np.mean([r.quality.get(key, float("nan")) for r in group]))
+            rows.append(row)
+        return rows
+
     def to_json(self) -> dict[str, Any]:
-        def finite(values: Mapping[str, float]) -> dict[str, float | None]:
-            return {k: (v if np.isfinite(v) else None) for k, v in values.items()}
+        def finite(values: Mapping[str, Any]) -> dict[str, Any]:
+            return {
+                k: None if isinstance(v, float) and not np.isfinite(v) else v
+                for k, v in values.items()
+            }
 
         return {
             "machine": self.machine,
@@ -418,6 +491,7 @@ class BenchReport:
                 {"preset": p, "variants": list(c), "lerf_miou": list(s), "holds": h}
                 for p, c, s, h in self.orderings()
             ],
+            "selection": [finite(cell) for cell in self.selection_cells()],
         }
 
     def markdown(self) -> str:
@@ -426,7 +500,10 @@ class BenchReport:
         lines = [
             f"Machine: {self.machine['processor']}, {self.machine['cpus']} CPUs, torch threads "
             f"{self.machine['torch_threads']}, CUDA: {self.machine['cuda'] or 'none'}. "
-            f"Means over {seeds} seed(s).",
+            f"Means over {seeds} seed(s) and every scenario (kinds "
+            f"{', '.join(self.config.get('kinds', ('2dgs',)))}, severities "
+            f"{', '.join(f'{v:g}' for v in self.config.get('severities', (0.5,)))}, context mixes "
+            f"{', '.join(f'{v:g}' for v in self.config.get('context_mixes', (0.0,)))}).",
             "",
             "| preset | variant | total s | lift s | partition s | merge s | features s "
             "| peak GiB | regions L0 / L1 / L2 / L3 |",
@@ -458,9 +535,36 @@ class BenchReport:
         for preset, variant in groups:
             values = " | ".join(f"{self.mean(preset, variant, key):.3f}" for key in keys)
             lines.append(f"| {preset} | {variant} | {values} |")
+        cells = self.selection_cells()
+        if cells:
+            lines += [
+                "",
+                "Selection across scenarios (full method; LERF mIoU, THGS protocol; means over "
+                "seeds):",
+                "",
+                "| preset | kind | severity | context mix | automatic | paper's | 3dovs |",
+                "|---|---|---|---|---|---|---|",
+            ]
+            for cell in cells:
+                lines.append(
+                    f"| {cell['preset']} | {cell['kind']} | {cell['severity']:g} "
+                    f"| {cell['context_mix']:g} | {cell['lerf miou']:.3f} "
+                    f"| {cell['lerf-paper miou']:.3f} | {cell['3dovs miou']:.3f} |"
+                )
+            auto = [cell["lerf miou"] for cell in cells]
+            paper = [cell["lerf-paper miou"] for cell in cells]
+            wins = sum(a >= b for a, b in zip(auto, paper))
+            lines += [
+                f"| mean | | | | {np.mean(auto):.3f} | {np.mean(paper):.3f} "
+                f"| {np.mean([cell['3dovs miou'] for cell in cells]):.3f} |",
+                f"| worst cell | | | | {np.min(auto):.3f} | {np.min(paper):.3f} "
+                f"| {np.min([cell['3dovs miou'] for cell in cells]):.3f} |",
+                "",
+                f"The automatic selection ≥ the paper's in {wins} of {len(cells)} cells.",
+            ]
         checks = self.orderings()
         if checks:
-            lines += ["", "Paper orderings (LERF mIoU, THGS protocol):", ""]
+            lines += ["", "Paper orderings (LERF mIoU, THGS protocol, paper's selection):", ""]
             for preset, chain, scores, holds in checks:
                 shown = " > ".join(f"{v} {s:.3f}" for v, s in zip(chain, scores))
                 lines.append(f"- {preset}: {shown}: {'holds' if holds else 'does not hold'}")

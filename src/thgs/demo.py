@@ -230,13 +230,19 @@ def synthetic_dataset(
     views: int | None,
     encoder: TextEncoder,
     progress: Progress | None = None,
+    *,
+    kind: str = "2dgs",
+    severity: float = 0.5,
+    context_mix: float = 0.0,
 ) -> tuple[Path, bool]:
     """The synthetic dataset of ``name`` (a preset) and ``seed`` in ``cache``, written there
     with oracle guidance in ``encoder``'s space if it is not yet: ``(folder, generated now)``.
 
-    ``gaussians`` and ``views`` override the preset's size (the folder name says so).
+    ``gaussians`` and ``views`` override the preset's size; ``kind`` (2dgs, 3dgs), the oracle's
+    mask ``severity`` and its ``context_mix`` (:class:`thgs.synthetic.OracleConfig`) choose the
+    scenario. The folder name says every value that is not the default.
     """
-    overrides = {"seed": seed}
+    overrides: dict[str, object] = {"seed": seed}
     tag = f"{name}-seed{seed}"
     if gaussians is not None:
         overrides["gaussians"] = gaussians
@@ -244,6 +250,13 @@ def synthetic_dataset(
     if views is not None:
         overrides["views"] = views
         tag += f"-{views}v"
+    if kind != "2dgs":
+        overrides["kind"] = kind
+        tag += f"-{kind}"
+    if severity != 0.5:
+        tag += f"-severity{severity:g}"
+    if context_mix != 0.0:
+        tag += f"-context{context_mix:g}"
     folder = cache / tag
     if (folder / "synthetic.json").is_file():
         logger.info("reusing the cached dataset %s", folder)
@@ -254,7 +267,7 @@ def synthetic_dataset(
         folder,
         scene,
         encoder,
-        oracle=OracleConfig(seed=seed),
+        oracle=OracleConfig(severity=severity, context_mix=context_mix, seed=seed),
         config=DatasetConfig(),
         overwrite=folder.exists(),
         progress=None if progress is None else lambda d, t: progress("generate", d, t),

@@ -18,6 +18,9 @@ def bench(
     out: Annotated[Path, tyro.conf.arg(aliases=("-o",))] = Path("thgs-bench"),
     presets: tuple[str, ...] = (),
     seeds: tuple[int, ...] = (0,),
+    kinds: tuple[Literal["2dgs", "3dgs"], ...] = ("2dgs",),
+    severities: tuple[float, ...] = (0.5,),
+    context_mixes: tuple[float, ...] = (0.0, 0.5),
     variants: tuple[str, ...] = (),
     gaussians: int | None = None,
     views: int | None = None,
@@ -38,6 +41,11 @@ def bench(
         presets: synthetic presets (default: synth-small and synth-medium; synth-large too on a
             CUDA GPU).
         seeds: scene seeds (results are averaged over them).
+        kinds: Gaussian kinds of the scenes, 2dgs and/or 3dgs.
+        severities: the oracle's mask-fault severities (0 clean, 0.5 default, 1 heavy).
+        context_mixes: the oracle's CLIP-likeness (0 name-perfect features; docs/synthetic.md);
+            each kind × severity × context mix is a scenario, and bench.md reports the automatic
+            and the paper's selection in every one.
         variants: a subset of the variants, by name (default: all).
         gaussians: override the presets' Gaussian count (quick runs).
         views: override the presets' view count.
@@ -54,6 +62,9 @@ def bench(
     require_matplotlib()
     config = BenchConfig(
         seeds=seeds,
+        kinds=kinds,
+        severities=severities,
+        context_mixes=context_mixes,
         gaussians=gaussians,
         views=views,
         cache=cache,

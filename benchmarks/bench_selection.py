@@ -1,0 +1,101 @@
+"""The automatic selection against the paper's across scenarios (docs/query.md).
+
+    .venv/bin/python benchmarks/bench_selection.py --seeds 5 6 --out /tmp/selection
+
+For every seed × Gaussian kind (2dgs, 3dgs) × mask-fault severity (0, 0.5, 1) × CLIP-likeness of
+the oracle's features (context mix 0, 0.5), a synth-small dataset is written with ``thgs synth``
+and its field built with ``thgs build`` (both cached in ``--out``); then, through the library:
+LERF-style mIoU under the THGS rule with the automatic selection (``lerf``) and the paper's
+(``lerf-paper``), 3D-OVS mIoU (automatic), the share of the scene's LERF categories the
+automatic selection answers and the share of 12 phrases naming nothing in the scene it abstains
+on. One JSON line per cell, then a markdown table of the means over seeds, the mean and the
+worst cell.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from thgs import load_scene
+from thgs.eval import evaluate_dataset, find_ground_truth
+from thgs.field import load_field
+from thgs.pipeline import lifted_raster
+from thgs.query import FieldQuery
+from thgs.text import load_text_encoder
+
+NONSENSE = (
+    "a giraffe", "the ocean", "a fire truck", "snow", "a violin", "a laptop", "a bicycle",
+    "a red sports car", "the moon", "a palm tree", "a toothbrush", "an elephant",
+)  # fmt: skip
+THGS = str(Path(sys.executable).with_name("thgs"))
+
+
+def cell(out: Path, seed: int, kind: str, severity: float, mix: float) -> dict:
+    dataset = out / f"{kind}-seed{seed}-severity{severity:g}-context{mix:g}"
+    if not (dataset / "synthetic.json").is_file():
+        command = [THGS, "synth", "synth-small", str(dataset), "--seed", str(seed), "--kind", kind]
+        command += ["--severity", str(severity), "--context-mix", str(mix), "--overwrite"]
+        subprocess.run(command, check=True, capture_output=True)
+    field_path = Path(f"{dataset}.thgs")
+    if not field_path.is_file():
+        subprocess.run([THGS, "build", str(dataset), "-o", str(field_path)], check=True)
+    field, scene = load_field(field_path), load_scene(dataset)
+    engine = FieldQuery(field, load_text_encoder(field.space))
+    report = evaluate_dataset(
+        find_ground_truth(dataset),
+        engine,
+        scene.gaussians,
+        scene.cameras,
+        protocols=("lerf", "3dovs"),
+        raster=lifted_raster(field),
+    )
+    named = sorted({i["prompt"] for r in report.results if r.protocol == "lerf" for i in r.items})
+    return {
+        "seed": seed,
+        "kind": kind,
+        "severity": severity,
+        "context_mix": mix,
+        "automatic": report.metric("lerf", "miou"),
+        "paper": report.metric("lerf-paper", "miou"),
+        "3dovs": report.metric("3dovs", "miou"),
+        "answered": float(np.mean([not s.empty for s in engine.select(named)])),
+        "abstained": float(np.mean([s.empty for s in engine.select(list(NONSENSE))])),
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seeds", type=int, nargs="+", default=[5, 6])
+    parser.add_argument("--out", type=Path, default=Path("/tmp/thgs-bench-selection"))
+    args = parser.parse_args()
+    args.out.mkdir(parents=True, exist_ok=True)
+    rows = []
+    grid = itertools.product(args.seeds, ("2dgs", "3dgs"), (0.0, 0.5, 1.0), (0.0, 0.5))
+    for seed, kind, severity, mix in grid:
+        rows.append(cell(args.out, seed, kind, severity, mix))
+        print(json.dumps(rows[-1]), flush=True)
+    cells: dict[tuple, list[dict]] = {}
+    for row in rows:
+        cells.setdefault((row["kind"], row["severity"], row["context_mix"]), []).append(row)
+    keys = ("automatic", "paper", "3dovs", "answered", "abstained")
+    print("\n| kind | severity | context mix | " + " | ".join(keys) + " |")
+    print("|---|---|---|" + "---|" * len(keys))
+    means = []
+    for (kind, severity, mix), group in cells.items():
+        means.append([float(np.mean([row[key] for row in group])) for key in keys])
+        values = " | ".join(f"{value:.3f}" for value in means[-1])
+        print(f"| {kind} | {severity:g} | {mix:g} | {values} |")
+    table = np.array(means)
+    print("| mean | | | " + " | ".join(f"{v:.3f}" for v in table.mean(axis=0)) + " |")
+    print("| worst cell | | | " + " | ".join(f"{v:.3f}" for v in table.min(axis=0)) + " |")
+
+
+if __name__ == "__main__":
+    main()
