@@ -21,6 +21,7 @@ from thgs.query import (
     default_threshold,
     relevancy,
     select,
+    select_auto,
     select_paper,
     small_region_size,
 )
@@ -307,3 +308,18 @@ def test_auto_mode_takes_every_region_named_like_the_query_or_abstains():
         select({1: np.ones(2)}, QueryConfig(levels=(1,)))
     with pytest.raises(InputError, match=r"extent"):
         QueryConfig(extent=1.0).check()
+
+
+def test_select_auto_by_hand():
+    # cosines 0.9, 0.85 (level 1), 0.2, 0.1 (level 3): median 0.525, lead 0.375, cut 0.84375
+    scores = {1: np.array([0.99, 0.98]), 3: np.array([0.7, 0.6])}
+    cosines = {1: np.array([0.9, 0.85]), 3: np.array([0.2, 0.1])}
+    everything = {1: np.array([0, 1]), 3: np.array([0, 1])}
+    choice = select_auto(scores, cosines, everything, extent=0.15, threshold=0.8)
+    assert choice.regions == ((1, 0, 0.99), (1, 1, 0.98)) and choice.best_relevancy == 0.99
+    # without region 1 of level 1 the median drops to 0.2: cut 0.795, region 0 alone
+    fewer = {1: np.array([0]), 3: np.array([0, 1])}
+    assert select_auto(scores, cosines, fewer, 0.15, 0.8).regions == ((1, 0, 0.99),)
+    # the best relevancy below the threshold: abstain
+    assert select_auto(scores, cosines, everything, 0.15, 0.995).regions == ()
+    assert select_auto(scores, cosines, {1: np.array([], int)}, 0.15, 0.5).best_relevancy == 0.0

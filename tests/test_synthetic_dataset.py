@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+import json
 from dataclasses import replace
 from pathlib import Path
 
@@ -189,12 +190,12 @@ class _FailingEncoder:
 
 def test_cli_synth_writes_a_loadable_dataset(tmp_path, capsys, encoder):
     out = tmp_path / "cli"
-    entrypoint(
-        ["synth", "synth-small", str(out), "--gaussians", "4000", "--views", "2", "--seed", "2"]
-    )
+    argv = ["synth", "synth-small", str(out), "--gaussians", "4000", "--views", "2"]
+    entrypoint([*argv, "--seed", "2", "--context-mix", "0.25"])
     assert "wrote" in capsys.readouterr().out
     scene = load_scene(out)
     assert len(scene.gaussians) == 4000 and len(scene.cameras) == 2
+    assert json.loads((out / "synthetic.json").read_text())["oracle"]["context_mix"] == 0.25
     with pytest.raises(SystemExit) as exit_info:
         entrypoint(["synth", "synth-small", str(out), "--gaussians", "4000", "--views", "2"])
     assert exit_info.value.code == 2

@@ -53,6 +53,7 @@ from thgs.text import MINILM_SPACE, TextEncoder, check_space
 
 __all__ = [
     "CANONICAL_PHRASES",
+    "AutoChoice",
     "FieldQuery",
     "QueryConfig",
     "Regions",
@@ -61,6 +62,7 @@ __all__ = [
     "default_threshold",
     "relevancy",
     "select",
+    "select_auto",
     "select_paper",
     "small_region_size",
 ]
@@ -283,7 +285,7 @@ def select(
     if config.mode == "auto":
         if similarities is None:
             raise InputError("select", "auto mode needs the regions' cosine similarities")
-        return _select_auto(scores, similarities, candidates, config.extent, cut)
+        return select_auto(scores, similarities, candidates, config.extent, cut).regions
     if config.mode == "paper":
         pool = []
         for level in config.searched_levels:
@@ -300,27 +302,49 @@ def select(
     return tuple((level, int(region), float(scores[level][region])) for region in ranked)
 
 
-def _select_auto(
+@dataclass(frozen=True)
+class AutoChoice:
+    """What :func:`select_auto` decided for one query.
+
+    Attributes:
+        regions: ``(level, region, relevancy)``, closest by cosine first; empty when abstaining.
+        best_relevancy: the highest relevancy among the candidates (0 when there are none).
+    """
+
+    regions: tuple[tuple[int, int, float], ...]
+    best_relevancy: float
+
+
+def select_auto(
     scores: dict[int, np.ndarray],
     similarities: dict[int, np.ndarray],
     candidates: dict[int, np.ndarray],
-    extent: float,
-    threshold: float,
-) -> tuple[tuple[int, int, float], ...]:
-    """Auto mode (module docstring): nothing when no candidate's relevancy reaches
-    ``threshold``; else every candidate whose cosine is ≥ best − extent · (best − median)."""
-    pairs = [(level, region) for level, ids in candidates.items() for region in ids]
-    if not pairs or max(scores[level][region] for level, region in pairs) < threshold:
-        return ()
+    extent: float = 0.15,
+    threshold: float = 0.5,
+) -> AutoChoice:
+    """The automatic selection of one query (module docstring, docs/query.md).
+
+    Args:
+        scores: level → [R_level] relevancies.
+        similarities: level → [R_level] cosines of the regions' features with the query.
+        candidates: level → [C_level] ids of the regions that may be chosen (seen, not small).
+        extent: share of the best's lead over the median a region may fall short by.
+        threshold: the relevancy the best candidate needs, or the query is abstained from.
+    """
+    pairs = [(level, int(region)) for level, ids in candidates.items() for region in ids]
+    best_relevancy = max((float(scores[level][region]) for level, region in pairs), default=0.0)
+    if not pairs or best_relevancy < threshold:
+        return AutoChoice((), best_relevancy)
     cosines = np.array([similarities[level][region] for level, region in pairs])
-    best = cosines.max()
-    cut = best - extent * (best - np.median(cosines))
+    best, median = float(cosines.max()), float(np.median(cosines))
+    cut = best - extent * (best - median)
     chosen = sorted(
-        (-float(cosine), level, int(region))
+        (-float(cosine), level, region)
         for (level, region), cosine in zip(pairs, cosines)
         if cosine >= cut
     )
-    return tuple((level, region, float(scores[level][region])) for _, level, region in chosen)
+    regions = tuple((level, region, float(scores[level][region])) for _, level, region in chosen)
+    return AutoChoice(regions, best_relevancy)
 
 
 def abstain_reason(text: str, best: float, threshold: float) -> str:
@@ -533,24 +557,30 @@ class FieldQuery:
                 if config.mode == "auto"
                 else None
             )
+            cut = config.threshold if config.threshold is not None else self.threshold
             for q, text in enumerate(todo):
-                regions = select(
-                    {k: s[q] for k, s in scores.items()},
-                    config,
-                    allowed,
-                    self.threshold,
-                    None if cosines is None else {k: c[q] for k, c in cosines.items()},
-                )
                 reason = None
-                if config.mode == "auto" and not regions:
-                    best = max(
-                        (float(scores[k][q][allowed[k]].max(initial=0.0)) for k in scores),
-                        default=0.0,
+                if config.mode == "auto":
+                    assert cosines is not None
+                    choice = select_auto(
+                        {k: s[q] for k, s in scores.items()},
+                        {k: c[q] for k, c in cosines.items()},
+                        {k: np.flatnonzero(allowed[k] & (s[q] > 0)) for k, s in scores.items()},
+                        config.extent,
+                        cut,
                     )
-                    cut = config.threshold if config.threshold is not None else self.threshold
-                    reason = abstain_reason(text, best, cut)
+                    regions = choice.regions
+                    if not regions:
+                        reason = abstain_reason(text, choice.best_relevancy, cut)
+                else:
+                    regions = select(
+                        {k: s[q] for k, s in scores.items()}, config, allowed, self.threshold
+                    )
                 selection = Selection(
-                    text, regions, self.gaussians_of([(k, r) for k, r, _ in regions]), reason
+                    text,
+                    regions,
+                    self.gaussians_of([(k, r) for k, r, _ in regions]),
+                    reason,
                 )
                 self._remember((text, config), selection)
                 logger.debug(
