@@ -148,6 +148,10 @@ def test_query_level_and_mode_changes_ask_again(state, opened):
     assert state.highlight.regions == expected.regions
     nothing = state.ask("xqzv blorf")
     assert nothing.regions == () and not nothing.gaussians.any() and nothing.primary is None
+    assert nothing.reason is None  # threshold mode: no region reached the slider's value
+    state.set_mode("auto")
+    abstained = state.ask("xqzv blorf")
+    assert abstained.regions == () and abstained.reason.startswith("nothing relevant to 'xqzv")
     with pytest.raises(InputError, match="nothing is selected"):
         state.parent()
 

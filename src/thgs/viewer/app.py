@@ -390,7 +390,7 @@ class ViewerApp:
             return ""
         count = int(highlight.gaussians.sum())
         if not highlight.regions:
-            head = f"**{highlight.text}**: nothing relevant enough"
+            head = f"**{highlight.text}**: {highlight.reason or 'nothing relevant enough'}"
         else:
             plural = "s" if len(highlight.regions) > 1 else ""
             head = (

@@ -154,6 +154,8 @@ class Highlight:
         anchor: the picked Gaussian, while the primary region contains it; else None.
         ranking: queries: the ``ViewerConfig.ranking`` most relevant regions of the level shown,
             ``(level, region, relevancy)``, whether selected or not.
+        reason: queries that selected nothing in auto mode: why
+            (:attr:`thgs.query.Selection.reason`).
     """
 
     kind: Literal["query", "pick"]
@@ -162,6 +164,7 @@ class Highlight:
     gaussians: np.ndarray
     anchor: int | None = None
     ranking: tuple[tuple[int, int, float], ...] = ()
+    reason: str | None = None
 
     @property
     def primary(self) -> tuple[int, int] | None:
@@ -260,7 +263,7 @@ class ViewerState:
         ranking = tuple((self.level, int(r), float(scores[r])) for r in top)
         self.last_text = text
         self.highlight = Highlight(
-            "query", text, selection.regions, selection.gaussians, None, ranking
+            "query", text, selection.regions, selection.gaussians, None, ranking, selection.reason
         )
         logger.info(
             "query %r: %d regions, %d Gaussians",
