@@ -45,7 +45,8 @@ def cell(out: Path, seed: int, kind: str, severity: float, mix: float) -> dict:
         subprocess.run(command, check=True, capture_output=True)
     field_path = Path(f"{dataset}.thgs")
     if not field_path.is_file():
-        subprocess.run([THGS, "build", str(dataset), "-o", str(field_path)], check=True)
+        command = [THGS, "build", str(dataset), "-o", str(field_path)]
+        subprocess.run(command, check=True, capture_output=True)
     field, scene = load_field(field_path), load_scene(dataset)
     engine = FieldQuery(field, load_text_encoder(field.space))
     report = evaluate_dataset(
