@@ -37,7 +37,9 @@ NONSENSE = (
 THGS = str(Path(sys.executable).with_name("thgs"))
 
 
-def cell(out: Path, seed: int, kind: str, severity: float, mix: float) -> dict:
+def scenario(out: Path, seed: int, kind: str, severity: float, mix: float) -> tuple[Path, Path]:
+    """The dataset and field of one cell, written with ``thgs synth`` and ``thgs build`` unless
+    ``out`` holds them already."""
     dataset = out / f"{kind}-seed{seed}-severity{severity:g}-context{mix:g}"
     if not (dataset / "synthetic.json").is_file():
         command = [THGS, "synth", "synth-small", str(dataset), "--seed", str(seed), "--kind", kind]
@@ -47,6 +49,11 @@ def cell(out: Path, seed: int, kind: str, severity: float, mix: float) -> dict:
     if not field_path.is_file():
         command = [THGS, "build", str(dataset), "-o", str(field_path)]
         subprocess.run(command, check=True, capture_output=True)
+    return dataset, field_path
+
+
+def cell(out: Path, seed: int, kind: str, severity: float, mix: float) -> dict:
+    dataset, field_path = scenario(out, seed, kind, severity, mix)
     field, scene = load_field(field_path), load_scene(dataset)
     engine = FieldQuery(field, load_text_encoder(field.space))
     report = evaluate_dataset(

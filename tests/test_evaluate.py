@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 
+from thgs.confidence import NULL_PHRASES
 from thgs.errors import InputError
 from thgs.eval import (
     FrameLabels,
@@ -55,6 +56,8 @@ class _TableEncoder:
             "bear": _unit(0, 1, 0, 0),
             "wood": _unit(0, 0, 1, 0),
         }
+        generic = np.random.default_rng(0).normal(size=(len(NULL_PHRASES), 4))
+        self.table |= {phrase: _unit(*v) for phrase, v in zip(NULL_PHRASES, generic)}
 
     def encode(self, texts):
         return np.stack([self.table[t] for t in texts]).astype(np.float32).reshape(-1, 4)

@@ -10,6 +10,14 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from thgs.confidence import (
+    NULL_PHRASES,
+    PRESENCE_CALIBRATION,
+    REGION_CALIBRATION,
+    NullModel,
+    presence_confidence,
+    region_confidence,
+)
 from thgs.errors import InputError
 from thgs.field import SemanticField
 from thgs.hierarchy import RegionLevels
@@ -157,6 +165,8 @@ def _encoder(space: str = "test") -> _TableEncoder:
     table = {phrase: _unit(0, 0, 1) for phrase in CANONICAL_PHRASES}
     table |= {"red": _unit(1, 0, 0), "green": _unit(0, 1, 0), "pinkish": _unit(1, 0.2, 0)}
     table |= {"nothing": _unit(0, 0, -1)}
+    generic = np.random.default_rng(0).normal(size=(len(NULL_PHRASES), 3))
+    table |= {phrase: _unit(*v) for phrase, v in zip(NULL_PHRASES, generic)}
     return _TableEncoder(space, table)
 
 
@@ -323,3 +333,65 @@ def test_select_auto_by_hand():
     # the best relevancy below the threshold: abstain
     assert select_auto(scores, cosines, everything, 0.15, 0.995).regions == ()
     assert select_auto(scores, cosines, {1: np.array([], int)}, 0.15, 0.5).best_relevancy == 0.0
+
+
+def test_null_model_hand_case():
+    cosines = np.array([[0.1, 0.5, -0.2], [0.3, 0.2, 0.0], [0.9, 0.1, 0.4]])  # [P=3, C=3]
+    null = NullModel.from_similarities(cosines)
+    best = np.array([0.5, 0.3, 0.9])
+    assert null.mean == pytest.approx(best.mean()) and null.std == pytest.approx(best.std())
+    np.testing.assert_allclose(null.score([0.7, best.mean()]), [(0.7 - 17 / 30) / best.std(), 0])
+    for bad in (np.zeros((1, 3)), np.zeros((3, 0)), np.zeros(3), np.ones((3, 2))):
+        with pytest.raises(InputError, match="null phrases"):
+            NullModel.from_similarities(bad)
+
+
+def test_confidences_are_the_stated_logistic_curves():
+    z = np.array([-2.0, 0.0, 1.5, 4.0])
+    for curve, (slope, offset) in (
+        (region_confidence, REGION_CALIBRATION),
+        (presence_confidence, PRESENCE_CALIBRATION),
+    ):
+        np.testing.assert_allclose(curve(z), 1 / (1 + np.exp(-(slope * z + offset))))
+        assert slope > 0 and np.all(np.diff(curve(z)) > 0)
+
+
+def test_confidence_matches_a_brute_force_computation():
+    field, encoder = _field(), _encoder()
+    fq = FieldQuery(field, encoder, QueryConfig(min_gaussians=0))
+    # the null by hand: every seen region of levels 1-3, each generic phrase's best cosine
+    generic = encoder.encode(list(NULL_PHRASES)).astype(np.float64)
+    seen = [field.features[k][field.seen[k]].astype(np.float64) for k in range(3)]
+    best = np.max(generic @ np.concatenate(seen).T, axis=1)
+    null = fq.null_model()
+    assert null.mean == pytest.approx(best.mean()) and null.std == pytest.approx(best.std())
+    for text, vector in (("red", _unit(1, 0, 0)), ("nothing", _unit(0, 0, -1))):
+        for level in (1, 2, 3):
+            cosine = field.features[level - 1].astype(np.float64) @ vector
+            expected = np.where(
+                field.seen[level - 1], region_confidence((cosine - best.mean()) / best.std()), 0
+            )
+            np.testing.assert_allclose(fq.confidence([text], level)[0], expected, rtol=1e-6)
+        top = max(float((features @ vector).max()) for features in seen)
+        expected_presence = presence_confidence((top - best.mean()) / best.std())
+        selection = fq.select([text])[0]
+        assert selection.confidence == pytest.approx(float(expected_presence))
+        summary = selection.to_json(field)
+        assert summary["confidence"] == selection.confidence
+        assert [r["confidence"] for r in summary["regions"]] == list(selection.region_confidence)
+    assert fq.presence(["red"])[0] > fq.presence(["nothing"])[0]
+    # small regions are out of the null and of presence, as they are out of every selection
+    assert fq.null_model(min_gaussians=100) is None
+    assert np.isnan(fq.presence(["red"], min_gaussians=100)[0])
+    unknown = fq.select(["red"], QueryConfig(min_gaussians=100))[0]
+    assert unknown.confidence is None and unknown.region_confidence is None
+    # generic phrases that all match equally well give no null either: no confidence, no error
+    flat = _encoder()
+    flat._table |= {phrase: _unit(0, 0, 1) for phrase in NULL_PHRASES}
+    assert FieldQuery(field, flat).null_model() is None
+    assert FieldQuery(field, flat).select(["red"])[0].confidence is None
+    # the paper's pure rule does not compute confidences, and says so by omitting them
+    canonical = encoder.encode(list(CANONICAL_PHRASES))
+    paper = select_paper(field, _unit(1, 0, 0), canonical)
+    assert paper.confidence is None and "confidence" not in paper.to_json(field)
+    assert all("confidence" not in r for r in paper.to_json(field)["regions"])

@@ -229,3 +229,24 @@ def test_exports_read_back(named, tmp_path):
     mask = selection_masks(scene.gaussians, scene.cameras.select([0]), selection.gaussians)
     write_mask_png(tmp_path / "mask.png", mask)
     np.testing.assert_array_equal(np.asarray(Image.open(tmp_path / "mask.png")) > 127, mask)
+
+
+def test_confidence_separates_named_things_from_nonsense(named):
+    _, hierarchy, _, fq = named
+    names = [name for level in NAMES for name in level]
+    present = [s.confidence for s in fq.select(names)]
+    absent = [s.confidence for s in fq.select(list(NONSENSE))]
+    assert min(present) > 0.9 and max(absent) < 0.5, (present, absent)
+    np.testing.assert_allclose(fq.presence(names), present)
+    # a selected region's confidence is its entry in the per-region confidences
+    for text in NAMES[2]:
+        selection = fq.select([text])[0]
+        for (level, region, _), value in zip(selection.regions, selection.region_confidence):
+            assert value == fq.confidence([text], level)[0, region]
+        # the object's own region is confidently it; the other object's is confidently not
+        truth = hierarchy.level_names(3) == text
+        objects = fq.regions.labels[:, 3]
+        own = np.bincount(objects[truth]).argmax()
+        other = np.bincount(objects[~truth & (hierarchy.labels[:, 3] >= 0)]).argmax()
+        scores = fq.confidence([text], 3)[0]
+        assert scores[own] > 0.8 and scores[other] < 0.2, (text, scores)

@@ -45,6 +45,7 @@ import numpy as np
 from scipy.special import expit
 
 from thgs._config_json import config_from_json
+from thgs.confidence import NULL_PHRASES, NullModel, presence_confidence, region_confidence
 from thgs.errors import InputError
 from thgs.field import SemanticField
 from thgs.hierarchy import MergeConfig
@@ -218,12 +219,25 @@ class Selection:
             modes).
         gaussians: [N] bool, True for the members of any selected region.
         reason: why nothing was selected (auto mode abstaining), else None.
+        confidence: the calibrated probability that the scene holds what the text names
+            (:func:`thgs.confidence.presence_confidence`, whatever the mode); None when it
+            cannot be computed (:meth:`FieldQuery.null_model` is None) or was not
+            (:func:`select_paper`).
+        region_confidence: per selected region, in the order of ``regions``, the calibrated
+            probability that it belongs to what was asked
+            (:func:`thgs.confidence.region_confidence`); None when not computed.
     """
 
     text: str
     regions: tuple[tuple[int, int, float], ...]
     gaussians: np.ndarray
     reason: str | None = None
+    confidence: float | None = None
+    region_confidence: tuple[float, ...] | None = None
+
+    def __post_init__(self) -> None:
+        if self.region_confidence is not None and len(self.region_confidence) != len(self.regions):
+            raise ValueError("Selection: one region confidence per region")
 
     @property
     def empty(self) -> bool:
@@ -231,19 +245,21 @@ class Selection:
         return not self.regions
 
     def to_json(self, field: SemanticField | Regions) -> dict[str, Any]:
-        """JSON-ready summary: the text, the regions (with their sizes in ``field``, the one
-        queried) and the Gaussian count."""
+        """JSON-ready summary: the text, the presence confidence, the regions (with their
+        confidence and their sizes in ``field``, the one queried) and the Gaussian count
+        (confidences only where computed)."""
+        confidences = self.region_confidence or (None,) * len(self.regions)
+        regions = []
+        for (level, region, score), confidence in zip(self.regions, confidences):
+            entry: dict[str, Any] = {"level": level, "region": region, "relevancy": score}
+            if confidence is not None:
+                entry["confidence"] = confidence
+            entry["gaussians"] = int(field.sizes(level)[region])
+            regions.append(entry)
         return {
             "text": self.text,
-            "regions": [
-                {
-                    "level": level,
-                    "region": region,
-                    "relevancy": score,
-                    "gaussians": int(field.sizes(level)[region]),
-                }
-                for level, region, score in self.regions
-            ],
+            **({"confidence": self.confidence} if self.confidence is not None else {}),
+            "regions": regions,
             "gaussians": int(self.gaussians.sum()),
             **({"reason": self.reason} if self.reason is not None else {}),
         }
@@ -487,6 +503,7 @@ class FieldQuery:
         self._sizes = {k: regions.sizes(k) for k in (1, 2, 3)}
         self._members = {k: _Members(regions.labels[:, k], len(self._sizes[k])) for k in (1, 2, 3)}
         self._results: OrderedDict[tuple[str, QueryConfig], Selection] = OrderedDict()
+        self._nulls: dict[int, NullModel | None] = {}
 
     def embed(self, texts: Sequence[str]) -> np.ndarray:
         """[Q, D] float64 unit embeddings of ``texts`` (encoded once per distinct text)."""
@@ -552,16 +569,12 @@ class FieldQuery:
             scores = {
                 k: self.relevancy(todo, k, config.temperature) for k in config.searched_levels
             }
-            cosines = (
-                {k: self.similarity(todo, k) for k in config.searched_levels}
-                if config.mode == "auto"
-                else None
-            )
+            cosines = {k: self.similarity(todo, k) for k in (1, 2, 3)}
+            presence, confidence = self._confidences(cosines, smallest)
             cut = config.threshold if config.threshold is not None else self.threshold
             for q, text in enumerate(todo):
                 reason = None
                 if config.mode == "auto":
-                    assert cosines is not None
                     choice = select_auto(
                         {k: s[q] for k, s in scores.items()},
                         {k: c[q] for k, c in cosines.items()},
@@ -581,6 +594,10 @@ class FieldQuery:
                     regions,
                     self.gaussians_of([(k, r) for k, r, _ in regions]),
                     reason,
+                    None if np.isnan(presence[q]) else float(presence[q]),
+                    None
+                    if np.isnan(presence[q])
+                    else tuple(float(confidence[k][q, r]) for k, r, _ in regions),
                 )
                 self._remember((text, config), selection)
                 logger.debug(
@@ -591,6 +608,65 @@ class FieldQuery:
                     selection.gaussians.sum(),
                 )
         return [self._results[(text, config)] for text in texts]
+
+    def null_model(self, min_gaussians: int | None = None) -> NullModel | None:
+        """The scene's null (:class:`thgs.confidence.NullModel`): how well the generic
+        :data:`thgs.confidence.NULL_PHRASES` match the regions of levels 1–3 that are seen and
+        have at least ``min_gaussians`` Gaussians (None: the field's small-region size). None
+        when no region qualifies or every phrase matches equally well (no spread to measure
+        against)."""
+        smallest = self.min_gaussians if min_gaussians is None else min_gaussians
+        if smallest not in self._nulls:
+            cosines = self._selectable_cosines(
+                {k: self.similarity(NULL_PHRASES, k) for k in (1, 2, 3)}, smallest
+            )
+            degenerate = cosines.size == 0 or not cosines.max(axis=1).std() > 0
+            self._nulls[smallest] = None if degenerate else NullModel.from_similarities(cosines)
+        return self._nulls[smallest]
+
+    def confidence(
+        self, texts: Sequence[str], level: int, min_gaussians: int | None = None
+    ) -> np.ndarray:
+        """[Q, R_level] the calibrated probability that each level-``level`` region belongs to
+        what each text names (:func:`thgs.confidence.region_confidence`; 0 for unseen regions;
+        NaN when the scene has no null, see :meth:`null_model`)."""
+        level = self.regions.checked_level(level)
+        smallest = self.min_gaussians if min_gaussians is None else min_gaussians
+        cosines = {k: self.similarity(texts, k) for k in (1, 2, 3)}
+        return self._confidences(cosines, smallest)[1][level]
+
+    def presence(self, texts: Sequence[str], min_gaussians: int | None = None) -> np.ndarray:
+        """[Q] the calibrated probability that the scene holds what each text names
+        (:func:`thgs.confidence.presence_confidence` of its best selectable region; NaN when
+        the scene has no null)."""
+        smallest = self.min_gaussians if min_gaussians is None else min_gaussians
+        cosines = {k: self.similarity(texts, k) for k in (1, 2, 3)}
+        return self._confidences(cosines, smallest)[0]
+
+    def _selectable_cosines(self, cosines: dict[int, np.ndarray], smallest: int) -> np.ndarray:
+        """[Q, C] the columns of ``cosines`` (level → [Q, R_level]) that belong to seen regions
+        with at least ``smallest`` Gaussians."""
+        columns = [
+            cosines[k][:, self.regions.seen[k - 1] & (self._sizes[k] >= smallest)]
+            for k in (1, 2, 3)
+        ]
+        return np.concatenate(columns, axis=1)
+
+    def _confidences(
+        self, cosines: dict[int, np.ndarray], smallest: int
+    ) -> tuple[np.ndarray, dict[int, np.ndarray]]:
+        """Presence [Q] and level → [Q, R_level] region confidences from the texts' cosines
+        (NaN without a null)."""
+        null = self.null_model(smallest)
+        if null is None:
+            unknown = {k: np.full(c.shape, np.nan) for k, c in cosines.items()}
+            return np.full(len(cosines[1]), np.nan), unknown
+        regions = {
+            k: np.where(self.regions.seen[k - 1], region_confidence(null.score(c)), 0.0)
+            for k, c in cosines.items()
+        }
+        best = self._selectable_cosines(cosines, smallest).max(axis=1)
+        return presence_confidence(null.score(best)), regions
 
     def selected(self, texts: Sequence[str]) -> np.ndarray:
         """[N, Q] bool: the Gaussians each text selects under the default config."""
