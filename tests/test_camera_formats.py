@@ -248,13 +248,13 @@ def test_colmap_bad_input(tmp_path, shared_data):
     (tmp_path / "cameras.txt").write_text(COLMAP_CAMERAS)
     with pytest.raises(InputError, match="not a COLMAP model"):
         read_colmap(tmp_path)
-    # a distorted camera model
+    # a fisheye camera model (perspective models with distortion are read: test_distortion.py)
     (tmp_path / "cameras.txt").write_text(
-        "1 OPENCV 320 240 100 110 160 120 0.1 0 0 0\n2 SIMPLE_PINHOLE 320 240 100 160 120\n"
+        "1 OPENCV_FISHEYE 320 240 100 110 160 120 0.1 0 0 0\n2 SIMPLE_PINHOLE 320 240 100 160 120\n"
     )
     (tmp_path / "images.txt").write_text(COLMAP_IMAGES)
     (tmp_path / "points3D.txt").write_text("")
-    with pytest.raises(InputError, match=r"OPENCV model.*image_undistorter") as info:
+    with pytest.raises(InputError, match=r"OPENCV_FISHEYE model.*image_undistorter") as info:
         read_colmap(tmp_path)
     assert str(info.value).startswith(str(tmp_path))
     # a truncated binary file
@@ -341,8 +341,9 @@ def transforms(**changes):
     ("content", "message"),
     [
         ('{"frames": []}', "non-empty 'frames'"),
-        (transforms(k1=0.05), "distortion k1 = 0.05"),
-        (transforms(camera_model="OPENCV_FISHEYE"), "not a pinhole model"),
+        (transforms(k4=0.05), "k4 = 0.05 on a perspective camera"),
+        (transforms(camera_model="OPENCV_FISHEYE"), "'OPENCV_FISHEYE' is not a perspective"),
+        (transforms(is_fisheye=True), "'fisheye' is not a perspective"),
         (
             transforms(
                 frame={"transform_matrix": [[2, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}

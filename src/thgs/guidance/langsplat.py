@@ -29,6 +29,7 @@ from thgs._atomic import atomic_output
 from thgs._json import load_json
 from thgs.errors import InputError
 from thgs.scene import Cameras
+from thgs.scene.distortion import undistort_labels
 from thgs.text import LANGSPLAT_SPACE
 
 __all__ = [
@@ -246,12 +247,19 @@ def load_guidance(
 ) -> list[ViewGuidance]:
     """The guidance of every camera, matched by image stem, at the cameras' resolution.
 
+    Masks are made on the image files. Where the files have lens distortion
+    (:attr:`thgs.Cameras.distortion`), masks at the size of the image file are warped into the
+    camera's undistorted pinhole image (nearest neighbour,
+    :func:`thgs.scene.distortion.undistort_labels`; pixels whose ray leaves the file get −1), and
+    masks already at the pinhole camera's size are taken as undistorted.
+
     Args:
         folder: the ``language_features`` folder.
         cameras: :class:`thgs.Cameras`; view i's files are ``<cameras.stems[i]>_{s,f}.npy``.
-        resize: if a view's masks are not at its camera's size, resample them (nearest
-            neighbour, :func:`resample_segments`) instead of raising. The reference code silently
-            assumes equal sizes; thgs never does.
+        resize: if a view's masks are not at its camera's size (or its image file's, with
+            distortion), resample them (nearest neighbour, :func:`resample_segments`) to that
+            size instead of raising. The reference code silently assumes equal sizes; thgs
+            never does.
 
     Returns:
         one :class:`ViewGuidance` per camera, in camera order.
@@ -271,10 +279,30 @@ def load_guidance(
             "files must be named <image stem>_s.npy / _f.npy",
         )
     views = []
+    file_widths, file_heights = cameras.file_sizes()
+    undistorted = 0
     for i, stem in enumerate(cameras.stems):
         view = read_view_guidance(folder, stem)
         height, width = int(cameras.heights[i]), int(cameras.widths[i])
-        if (view.height, view.width) != (height, width):
+        mapping = cameras.undistortion_map(i)
+        if mapping is not None and (view.height, view.width) != (height, width):
+            file_height, file_width = int(file_heights[i]), int(file_widths[i])
+            if (view.height, view.width) != (file_height, file_width):
+                if not resize:
+                    raise InputError(
+                        folder / f"{stem}_s.npy",
+                        f"masks are {view.width}×{view.height} but the image file is "
+                        f"{file_width}×{file_height} (its undistorted camera {width}×{height}); "
+                        "pass resize=True to resample them (nearest neighbour)",
+                    )
+                view = ViewGuidance(
+                    stem,
+                    resample_segments(view.segments, file_height, file_width),
+                    view.features,
+                )
+            view = ViewGuidance(stem, undistort_labels(view.segments, mapping), view.features)
+            undistorted += 1
+        elif (view.height, view.width) != (height, width):
             if not resize:
                 raise InputError(
                     folder / f"{stem}_s.npy",
@@ -291,5 +319,7 @@ def load_guidance(
                 f"{views[0].features.shape[1]}",
             )
         views.append(view)
+    if undistorted:
+        logger.info("undistorted the masks of %d views (lens distortion)", undistorted)
     logger.info("read guidance for %d views from %s", len(views), folder)
     return views

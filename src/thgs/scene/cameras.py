@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import PurePosixPath
@@ -12,13 +13,26 @@ import torch
 from torch import Tensor
 
 from thgs.errors import InputError
+from thgs.scene.distortion import Distortion, pinhole_camera, undistortion_map
 
-__all__ = ["Cameras", "round_half_up", "viewmat_from_pose"]
+__all__ = ["Cameras", "refuse_distortion", "round_half_up", "viewmat_from_pose"]
 
 
 def round_half_up(value: float) -> int:
     """Round to the nearest integer, halves up (164.5 → 165), as image resizers do."""
     return math.floor(value + 0.5)
+
+
+def refuse_distortion(cameras: Cameras, path: str | os.PathLike[str]) -> None:
+    """Raise :class:`InputError` naming ``path`` if ``cameras`` describe distorted image files:
+    the camera writers store pinhole cameras, which would not fit those files."""
+    if cameras.distortion is not None:
+        raise InputError(
+            path,
+            "the cameras' image files have lens distortion and this format would store them as "
+            "pinhole cameras; write undistorted images (thgs.scene.distortion.undistort_image) "
+            "and dataclasses.replace(cameras, distortion=None)",
+        )
 
 
 def viewmat_from_pose(rotation: np.ndarray, centre: np.ndarray) -> np.ndarray:
@@ -36,6 +50,11 @@ class Cameras:
     Every reader converts its format into this once; nothing else in thgs knows about OpenGL,
     COLMAP or nerfstudio conventions. See docs/conventions.md.
 
+    Image files taken through a distorting lens are described by the pinhole cameras they are
+    undistorted into (:func:`thgs.scene.distortion.pinhole_camera`, as gsplat and nerfstudio do
+    before training) plus :attr:`distortion`, the lens as calibrated: per-pixel data made on the
+    image files (SAM masks) is warped into these cameras with :meth:`undistortion_map`.
+
     Attributes:
         viewmats: [M, 4, 4] float64 world→camera transforms, OpenCV camera axes (x right, y down,
             z forward): ``p_cam = R · p_world + t``. Scene units.
@@ -49,6 +68,8 @@ class Cameras:
             ``DSC_5283`` from cameras.json, ``images/frame_00001.png`` from transforms.json).
             :attr:`stems` (the file name without folder and extension) identify views across
             formats and guidance files, as in 3DGS and LangSplat.
+        distortion: the distorted cameras of the image files (:class:`Distortion`, M rows), or
+            None when the image files are the pinhole images themselves.
     """
 
     viewmats: Tensor
@@ -56,6 +77,7 @@ class Cameras:
     widths: Tensor
     heights: Tensor
     names: tuple[str, ...]
+    distortion: Distortion | None = None
 
     def __len__(self) -> int:
         return int(self.viewmats.shape[0])
@@ -76,6 +98,105 @@ class Cameras:
             widths=torch.tensor(widths, dtype=torch.int64),
             heights=torch.tensor(heights, dtype=torch.int64),
             names=tuple(names),
+        )
+
+    @classmethod
+    def from_distorted(
+        cls,
+        viewmats: Sequence[np.ndarray],
+        Ks: Sequence,
+        coeffs: Sequence,
+        widths: Sequence[int],
+        heights: Sequence[int],
+        names: Sequence[str],
+    ) -> Cameras:
+        """The pinhole cameras of image files taken through distorting lenses.
+
+        Args:
+            viewmats: M [4, 4] world→camera transforms.
+            Ks: M [3, 3] intrinsics of the image files (pixels, thgs's convention).
+            coeffs: M [8] OpenCV coefficients ``(k1, k2, p1, p2, k3, k4, k5, k6)``.
+            widths, heights: the image files' sizes.
+            names: image names.
+
+        Returns:
+            Cameras whose K and size are :func:`thgs.scene.distortion.pinhole_camera`'s, with
+            :attr:`distortion` set, or plain cameras when every coefficient is zero.
+        """
+        coeffs_array = np.asarray(coeffs, dtype=np.float64).reshape(len(names), 8)
+        if not coeffs_array.any():
+            return cls.from_lists(viewmats, Ks, widths, heights, names)
+        distortion = Distortion(
+            torch.tensor(np.asarray(Ks), dtype=torch.float64),
+            torch.from_numpy(coeffs_array),
+            torch.tensor(widths, dtype=torch.int64),
+            torch.tensor(heights, dtype=torch.int64),
+        )
+        return cls._undistorted(torch.tensor(np.stack(viewmats)), distortion, tuple(names))
+
+    @classmethod
+    def _undistorted(cls, viewmats: Tensor, distortion: Distortion, names: tuple[str, ...]):
+        pinholes = [
+            pinhole_camera(
+                distortion.Ks[i].numpy(),
+                distortion.coeffs[i].numpy(),
+                int(distortion.widths[i]),
+                int(distortion.heights[i]),
+            )
+            for i in range(len(distortion))
+        ]
+        return cls(
+            viewmats=viewmats.to(torch.float64),
+            Ks=torch.tensor(np.stack([K for K, _, _ in pinholes]), dtype=torch.float64),
+            widths=torch.tensor([w for _, w, _ in pinholes], dtype=torch.int64),
+            heights=torch.tensor([h for _, _, h in pinholes], dtype=torch.int64),
+            names=names,
+            distortion=distortion,
+        )
+
+    def file_sizes(self) -> tuple[Tensor, Tensor]:
+        """``(widths, heights)``, [M] int64 each: the sizes of the image files, which are the
+        distorted images' where :attr:`distortion` is set and the cameras' own otherwise."""
+        if self.distortion is None:
+            return self.widths, self.heights
+        return self.distortion.widths, self.distortion.heights
+
+    def undistortion_map(self, index: int) -> np.ndarray | None:
+        """Where each pixel of camera ``index`` looks in its (distorted) image file.
+
+        Returns:
+            [H, W, 2] float32 continuous image-file coordinates per pixel of this camera (see
+            :func:`thgs.scene.distortion.undistortion_map`), or None when the image file needs
+            no warp (no distortion).
+        """
+        distortion = self.distortion
+        if distortion is None or not distortion.distorted(index):
+            return None
+        return undistortion_map(
+            distortion.Ks[index].numpy(),
+            distortion.coeffs[index].numpy(),
+            self.Ks[index].numpy(),
+            int(self.widths[index]),
+            int(self.heights[index]),
+        )
+
+    def with_file_sizes(
+        self, widths: Tensor | Sequence[int], heights: Tensor | Sequence[int]
+    ) -> Cameras:
+        """The cameras of the same image files resized to ``widths × heights`` ([M] each).
+
+        Without distortion this is :meth:`resized`; with it, the distorted cameras are resized
+        and the pinhole cameras recomputed at the new size (as gsplat does for its
+        downscaled image folders).
+        """
+        if self.distortion is None:
+            return self.resized(widths, heights)
+        widths = torch.as_tensor(widths, dtype=torch.int64).reshape(len(self))
+        heights = torch.as_tensor(heights, dtype=torch.int64).reshape(len(self))
+        if bool((widths <= 0).any() or (heights <= 0).any()):
+            raise InputError("Cameras.with_file_sizes", "image sizes must be positive")
+        return Cameras._undistorted(
+            self.viewmats.clone(), self.distortion.resized(widths, heights), self.names
         )
 
     @property
@@ -118,7 +239,9 @@ class Cameras:
         """The same cameras for images resized to ``widths × heights`` ([M] each).
 
         Intrinsics scale per axis by ``new / old`` size, which keeps the field of view and the
-        pixel-centre convention exact (a resize maps the image rectangle onto itself).
+        pixel-centre convention exact (a resize maps the image rectangle onto itself). The image
+        files (:attr:`distortion`) stay as they are: :meth:`undistortion_map` then warps them to
+        the new size. For image files of another size, use :meth:`with_file_sizes`.
         """
         widths = torch.as_tensor(widths, dtype=torch.int64).reshape(len(self))
         heights = torch.as_tensor(heights, dtype=torch.int64).reshape(len(self))
@@ -129,15 +252,17 @@ class Cameras:
         Ks = self.Ks.clone()
         Ks[:, 0, :] *= sx[:, None]
         Ks[:, 1, :] *= sy[:, None]
-        return Cameras(self.viewmats.clone(), Ks, widths, heights, self.names)
+        return Cameras(self.viewmats.clone(), Ks, widths, heights, self.names, self.distortion)
 
     def scaled(self, scale: float) -> Cameras:
-        """The cameras for images resized by ``scale`` (0.25: 4× smaller), sizes rounded half up."""
+        """The cameras for image files resized by ``scale`` (0.25: 4× smaller), sizes rounded
+        half up (:meth:`with_file_sizes`)."""
         if not scale > 0:
             raise InputError("Cameras.scaled", f"scale must be positive, got {scale}")
-        widths = [round_half_up(float(w) * scale) for w in self.widths]
-        heights = [round_half_up(float(h) * scale) for h in self.heights]
-        return self.resized(widths, heights)
+        file_widths, file_heights = self.file_sizes()
+        widths = [round_half_up(float(w) * scale) for w in file_widths]
+        heights = [round_half_up(float(h) * scale) for h in file_heights]
+        return self.with_file_sizes(widths, heights)
 
     def select(self, index: Sequence[int] | Tensor) -> Cameras:
         """The cameras at ``index`` ([K] int indices), in that order."""
@@ -149,6 +274,7 @@ class Cameras:
             self.widths[index_t],
             self.heights[index_t],
             names,
+            None if self.distortion is None else self.distortion.select(index_t),
         )
 
     def check(self, source: str = "Cameras") -> Cameras:
@@ -185,6 +311,8 @@ class Cameras:
                 )
         for i in range(m):
             self._check_one(i, source)
+        if self.distortion is not None:
+            self.distortion.check(m, source)
         stems = self.stems
         if len(set(stems)) != m:
             seen: set[str] = set()

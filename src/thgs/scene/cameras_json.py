@@ -22,7 +22,7 @@ import numpy as np
 from thgs._atomic import atomic_output
 from thgs._json import get_matrix, get_number, load_json
 from thgs.errors import InputError
-from thgs.scene.cameras import Cameras, viewmat_from_pose
+from thgs.scene.cameras import Cameras, refuse_distortion, viewmat_from_pose
 
 __all__ = ["read_cameras_json", "write_cameras_json"]
 
@@ -78,9 +78,11 @@ def write_cameras_json(path: str | os.PathLike[str], cameras: Cameras) -> None:
     must have it at the image centre (within 1e-6 px).
 
     Raises:
-        InputError: the cameras fail :meth:`Cameras.check`, or a principal point is off-centre.
+        InputError: the cameras fail :meth:`Cameras.check`, a principal point is off-centre, or
+            the cameras have lens distortion.
     """
     cameras.check(source=f"cameras to write to {os.fspath(path)}")
+    refuse_distortion(cameras, path)
     entries = []
     camtoworlds = cameras.camtoworlds().numpy()
     for i, stem in enumerate(cameras.stems):

@@ -1,9 +1,11 @@
 """COLMAP sparse models (``sparse/0``, binary or text), read and written through pycolmap.
 
-Only undistorted pinhole cameras are accepted (``PINHOLE``, ``SIMPLE_PINHOLE``): Gaussian
-splatting trains on undistorted images (``colmap image_undistorter``). COLMAP's camera axes and
-pixel convention (pixel centres at integer + 0.5) are thgs's own, so poses and intrinsics are taken
-as they are.
+Pinhole models (``PINHOLE``, ``SIMPLE_PINHOLE``) are read as they are. The perspective models with
+lens distortion (``SIMPLE_RADIAL``, ``RADIAL``, ``OPENCV``, ``FULL_OPENCV``) become the pinhole
+cameras their images are undistorted into, as gsplat and nerfstudio train
+(:mod:`thgs.scene.distortion`). Fisheye and other models must be undistorted first
+(``colmap image_undistorter``). COLMAP's camera axes and pixel convention (pixel centres at
+integer + 0.5) are thgs's own, so poses and intrinsics are taken as they are.
 """
 
 from __future__ import annotations
@@ -16,14 +18,28 @@ import numpy as np
 
 from thgs._atomic import staging_folder
 from thgs.errors import InputError
-from thgs.scene.cameras import Cameras
+from thgs.scene.cameras import Cameras, refuse_distortion
 from thgs.scene.images import fit_to_images
 
 __all__ = ["read_colmap", "write_colmap"]
 
 logger = logging.getLogger(__name__)
 
-_SUPPORTED_MODELS = ("PINHOLE", "SIMPLE_PINHOLE")
+_PINHOLE_MODELS = ("PINHOLE", "SIMPLE_PINHOLE")
+_DISTORTED_MODELS = ("SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV")
+
+
+def _intrinsics(model: str, params: np.ndarray) -> tuple[list[list[float]], np.ndarray]:
+    """K (pixels) and the [8] OpenCV coefficients of a COLMAP camera model's parameters."""
+    coeffs = np.zeros(8)
+    if model in ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL"):
+        fx = fy = params[0]
+        cx, cy = params[1:3]
+        coeffs[: len(params) - 3] = params[3:]  # k, or k1 k2
+    else:
+        fx, fy, cx, cy = params[:4]
+        coeffs[: len(params) - 4] = params[4:]  # k1 k2 p1 p2 [k3 k4 k5 k6]
+    return [[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], coeffs
 
 
 def _model_files(sparse_dir: Path) -> str:
@@ -59,11 +75,13 @@ def read_colmap(
             ``images_4``). Never guessed from the images.
 
     Returns:
-        :class:`Cameras`, one per registered image, sorted by image name (as the 3DGS loaders do).
+        :class:`Cameras`, one per registered image, sorted by image name (as the 3DGS loaders do);
+        cameras with lens distortion are the pinhole cameras of their undistorted images, with
+        :attr:`Cameras.distortion` set.
 
     Raises:
-        InputError: missing or unreadable model files, a camera model other than PINHOLE or
-            SIMPLE_PINHOLE (undistort first), no registered image, or images that do not match.
+        InputError: missing or unreadable model files, a fisheye or other camera model thgs
+            cannot undistort (undistort first), no registered image, or images that do not match.
     """
     import pycolmap
 
@@ -87,29 +105,36 @@ def read_colmap(
         logger.info("%s: skipping %d unregistered images", sparse_dir, unregistered)
     if not images:
         raise InputError(sparse_dir, "the COLMAP model has no registered image")
-    viewmats, Ks, widths, heights, names = [], [], [], [], []
+    viewmats, Ks, coeffs, widths, heights, names = [], [], [], [], [], []
     for image in images:
         camera = reconstruction.cameras[image.camera_id]
         model = camera.model.name
-        if model not in _SUPPORTED_MODELS:
+        if model not in _PINHOLE_MODELS + _DISTORTED_MODELS:
             raise InputError(
                 sparse_dir,
                 f"camera {image.camera_id} (image {image.name!r}) uses the {model} model; thgs "
-                f"needs undistorted {' or '.join(_SUPPORTED_MODELS)} cameras: run "
+                f"reads {', '.join(_PINHOLE_MODELS + _DISTORTED_MODELS)}: run "
                 "`colmap image_undistorter` and use its sparse model and images",
             )
-        params = np.asarray(camera.params, dtype=np.float64)
-        fx, fy, cx, cy = (
-            (params[0], params[0], *params[1:3]) if model == "SIMPLE_PINHOLE" else params
-        )
+        K, camera_coeffs = _intrinsics(model, np.asarray(camera.params, dtype=np.float64))
         viewmat = np.eye(4)
         viewmat[:3, :] = image.cam_from_world().matrix()
         viewmats.append(viewmat)
-        Ks.append([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+        Ks.append(K)
+        coeffs.append(camera_coeffs)
         widths.append(camera.width)
         heights.append(camera.height)
         names.append(image.name)
-    cameras = Cameras.from_lists(viewmats, Ks, widths, heights, names).check(source=str(sparse_dir))
+    distorted = sorted({reconstruction.cameras[image.camera_id].model.name for image in images})
+    distorted = [model for model in distorted if model in _DISTORTED_MODELS]
+    if distorted:
+        logger.info(
+            "%s: %s cameras with lens distortion; masks are undistorted into pinhole cameras",
+            sparse_dir,
+            "/".join(distorted),
+        )
+    cameras = Cameras.from_distorted(viewmats, Ks, coeffs, widths, heights, names)
+    cameras = cameras.check(source=str(sparse_dir))
     if images_dir is not None:
         return fit_to_images(cameras, images_dir, scale=scale)
     return cameras if scale == 1.0 else cameras.scaled(scale)
@@ -124,12 +149,13 @@ def write_colmap(
     are written to a temporary folder beside ``sparse_dir`` and then moved in, one rename each.
 
     Raises:
-        InputError: the cameras fail :meth:`Cameras.check` or have a skewed K.
+        InputError: the cameras fail :meth:`Cameras.check`, have a skewed K or lens distortion.
     """
     import pycolmap
 
     sparse_dir = Path(sparse_dir)
     cameras.check(source=f"cameras to write to {sparse_dir}")
+    refuse_distortion(cameras, sparse_dir)
     if bool((cameras.Ks[:, 0, 1] != 0).any()):
         raise InputError(sparse_dir, "COLMAP PINHOLE cameras cannot have skew (K[0, 1] != 0)")
     reconstruction = pycolmap.Reconstruction()

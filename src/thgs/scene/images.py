@@ -47,7 +47,9 @@ def fit_to_images(cameras: Cameras, root: str | os.PathLike[str], *, scale: floa
     Each image must exist and measure ``round(width · scale) × round(height · scale)`` within one
     pixel (resizers round differently); the returned cameras take the images' exact sizes, their
     intrinsics scaled per axis by image size / camera size. ``scale`` is never guessed: a
-    mismatch is an error that reports the scale the images suggest.
+    mismatch is an error that reports the scale the images suggest. Cameras with lens distortion
+    are checked against their distorted image files (:meth:`Cameras.file_sizes`) and their
+    pinhole cameras recomputed at the images' size (:meth:`Cameras.with_file_sizes`).
 
     Args:
         cameras: cameras at the resolution of the camera model (e.g. COLMAP's).
@@ -68,6 +70,7 @@ def fit_to_images(cameras: Cameras, root: str | os.PathLike[str], *, scale: floa
             f"{len(missing)} of {len(cameras)} camera images are missing (first: {missing[:5]}); "
             "image names must match the camera names",
         )
+    file_widths, file_heights = cameras.file_sizes()
     widths, heights = [], []
     for i, path in enumerate(paths):
         assert path is not None
@@ -76,18 +79,18 @@ def fit_to_images(cameras: Cameras, root: str | os.PathLike[str], *, scale: floa
                 width, height = image.size
         except (OSError, UnidentifiedImageError) as exc:
             raise InputError(path, f"not a readable image ({exc})") from exc
-        expected_w = round_half_up(float(cameras.widths[i]) * scale)
-        expected_h = round_half_up(float(cameras.heights[i]) * scale)
+        expected_w = round_half_up(float(file_widths[i]) * scale)
+        expected_h = round_half_up(float(file_heights[i]) * scale)
         if abs(width - expected_w) > 1 or abs(height - expected_h) > 1:
-            suggested = width / float(cameras.widths[i])
+            suggested = width / float(file_widths[i])
             raise InputError(
                 path,
                 f"the image is {width}×{height} but camera {cameras.names[i]!r} is "
-                f"{int(cameras.widths[i])}×{int(cameras.heights[i])} at scale {scale:g} "
+                f"{int(file_widths[i])}×{int(file_heights[i])} at scale {scale:g} "
                 f"(expected {expected_w}×{expected_h}); the image suggests scale "
                 f"{suggested:.4g}: pass it explicitly if that is right",
             )
         widths.append(width)
         heights.append(height)
     logger.info("matched %d cameras to the images in %s", len(cameras), root)
-    return cameras.resized(widths, heights)
+    return cameras.with_file_sizes(widths, heights)

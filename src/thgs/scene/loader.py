@@ -1,4 +1,5 @@
-"""Recognise a scene on disk (a trained model folder, or a PLY plus a source) and load it."""
+"""Recognise a scene on disk (a trained model folder, a gsplat checkpoint, or a PLY plus a source)
+and load it."""
 
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ from thgs.scene.cameras import Cameras
 from thgs.scene.cameras_json import read_cameras_json
 from thgs.scene.colmap import read_colmap
 from thgs.scene.gaussians import Gaussians
+from thgs.scene.gsplat_checkpoint import find_gsplat_checkpoint, read_gsplat_checkpoint
 from thgs.scene.images import find_images, fit_to_images
 from thgs.scene.ply import read_ply
 from thgs.scene.transforms_json import read_transforms_json
@@ -35,7 +37,7 @@ class Scene:
         gaussians: the scene's Gaussians.
         cameras: its cameras at the resolution of the images (when they were checked) or of the
             camera file, or None when only a PLY was given.
-        ply_path: the PLY the Gaussians were read from.
+        ply_path: the file the Gaussians were read from: a PLY, or a gsplat checkpoint (.pt).
         cameras_path: the camera file or COLMAP folder, or None.
         found: what was recognised, one line each, in the order it was looked at.
     """
@@ -62,8 +64,9 @@ def _model_ply(model_dir: Path, iteration: int | None) -> tuple[Path, int]:
     if not iterations:
         raise InputError(
             model_dir,
-            "not a trained model folder: no point_cloud/iteration_*/point_cloud.ply (give the "
-            "PLY file itself, or the folder the 3DGS/2DGS trainer wrote)",
+            "not a trained model folder: no point_cloud/iteration_*/point_cloud.ply and no "
+            "gsplat ckpts/ckpt_*.pt (give the PLY or .pt file itself, or the folder the "
+            "3DGS/2DGS or gsplat trainer wrote)",
         )
     if iteration is None:
         iteration = iterations[-1]
@@ -178,15 +181,18 @@ def load_scene(
     scale: float = 1.0,
     undo_applied_transform: bool = False,
 ) -> Scene:
-    """Load a scene from a trained model folder or a PLY file.
+    """Load a scene from a trained model folder, a gsplat checkpoint or a PLY file.
 
     Args:
         path: a 3DGS/2DGS model folder (``point_cloud/iteration_*/point_cloud.ply`` and usually
-            ``cameras.json``) or a ``.ply`` file.
+            ``cameras.json``), a ``.ply`` file, a gsplat result folder (``ckpts/ckpt_*.pt``) or
+            one gsplat checkpoint ``.pt`` (:func:`thgs.scene.read_gsplat_checkpoint`; gsplat
+            keeps no cameras with it: give ``source``).
         source: where the cameras come from, overriding the model's ``cameras.json``: the
             training data folder (COLMAP ``sparse/0`` + ``images/``, or ``transforms.json``) or a
             camera file. See :func:`load_cameras`.
-        iteration: which ``iteration_*`` of a model folder; default the newest.
+        iteration: which ``iteration_*`` of a model folder, or which step of a gsplat result
+            folder; default the newest.
         images: the image folder's name inside ``source`` (e.g. ``images_4``); default
             ``images``, checked when present.
         scale: image size / camera-file size (e.g. 0.25 with ``images_4``); never guessed.
@@ -201,21 +207,33 @@ def load_scene(
     path = Path(path)
     found: list[str] = []
     model_cameras: Path | None = None
-    if path.is_dir():
+    if path.is_dir() and not (path / "point_cloud").is_dir() and (path / "ckpts").is_dir():
+        ply_path = find_gsplat_checkpoint(path, iteration)
+        found.append(f"gsplat result folder {path}, checkpoint {ply_path.name}")
+    elif path.is_dir():
         ply_path, chosen = _model_ply(path, iteration)
         found.append(f"trained model folder {path}, iteration {chosen}")
         if (path / "cameras.json").is_file():
             model_cameras = path / "cameras.json"
     elif path.is_file():
-        if path.suffix.lower() != ".ply":
-            raise InputError(path, "expected a .ply file or a trained model folder")
+        if path.suffix.lower() not in (".ply", ".pt"):
+            raise InputError(
+                path, "expected a .ply file, a gsplat checkpoint (.pt) or a trained model folder"
+            )
         if iteration is not None:
             raise InputError(path, "iteration is only meaningful for a model folder")
         ply_path = path
     else:
         raise InputError(path, "no such file or folder")
 
-    gaussians = read_ply(ply_path)
+    if ply_path.suffix.lower() == ".pt":
+        gaussians = read_gsplat_checkpoint(ply_path)
+        found.append(
+            f"gsplat checkpoint read as {gaussians.kind.upper()}, told by its name "
+            "(simple_trainer writes ckpt_<step>_rank<r>.pt, simple_trainer_2dgs ckpt_<step>.pt)"
+        )
+    else:
+        gaussians = read_ply(ply_path)
     found.append(
         f"{len(gaussians):,} {gaussians.kind.upper()} Gaussians, SH degree "
         f"{gaussians.sh_degree} in {ply_path}"

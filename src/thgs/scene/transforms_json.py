@@ -2,8 +2,9 @@
 
 Layout::
 
-    {"camera_model": "OPENCV",                     # optional; distortion must be zero
+    {"camera_model": "OPENCV",                     # optional; OPENCV, PINHOLE or SIMPLE_PINHOLE
      "fl_x": …, "fl_y": …, "cx": …, "cy": …, "w": …, "h": …,   # pixels, global (optional)
+     "k1": …, "k2": …, "k3": …, "p1": …, "p2": …,   # lens distortion (optional, default 0)
      "camera_angle_x": …,                          # instant-ngp / Blender: horizontal FoV (rad)
      "frames": [{"file_path": "images/frame_00001.png",
                  "transform_matrix": [[…4×4…]],    # camera→world, OpenGL axes
@@ -12,6 +13,11 @@ Layout::
 Missing values are completed as the 3DGS Blender loader does: ``fl_x`` from ``camera_angle_x``,
 ``fl_y = fl_x`` unless ``fl_y`` or ``camera_angle_y`` is given, ``cx, cy`` at the image centre,
 ``w, h`` from the image file. Poses are converted once to world→camera OpenCV axes.
+
+Lens distortion (instant-ngp's fox capture, nerfstudio's ``OPENCV`` cameras) is OpenCV's model with
+``k1 k2 k3`` radial and ``p1 p2`` tangential; such cameras become the pinhole cameras their images
+are undistorted into, as nerfstudio and gsplat train (:mod:`thgs.scene.distortion`). Fisheye
+cameras (``OPENCV_FISHEYE``, instant-ngp's ``is_fisheye``) must be undistorted first.
 """
 
 from __future__ import annotations
@@ -29,7 +35,7 @@ from PIL import Image, UnidentifiedImageError
 from thgs._atomic import atomic_output
 from thgs._json import get_matrix, get_number, load_json
 from thgs.errors import InputError
-from thgs.scene.cameras import Cameras, viewmat_from_pose
+from thgs.scene.cameras import Cameras, refuse_distortion, viewmat_from_pose
 from thgs.scene.images import image_candidates
 
 __all__ = ["read_transforms_json", "write_transforms_json"]
@@ -55,9 +61,11 @@ _INTRINSIC_KEYS = (
     "p1",
     "p2",
     "camera_model",
+    "is_fisheye",
 )
-_DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
-_PINHOLE_MODELS = ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE")
+_OPENCV_SLOTS = {"k1": 0, "k2": 1, "p1": 2, "p2": 3, "k3": 4}
+"""Where each transforms.json coefficient goes in OpenCV's (k1, k2, p1, p2, k3, k4, k5, k6)."""
+_PERSPECTIVE_MODELS = ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE")
 
 
 def _image_size(root: Path, file_path: str, path: Path, where: str) -> tuple[int, int]:
@@ -74,23 +82,31 @@ def _image_size(root: Path, file_path: str, path: Path, where: str) -> tuple[int
         raise InputError(found, f"not a readable image ({exc})") from exc
 
 
+def _coefficients(values: dict[str, Any], path: Path, where: str) -> np.ndarray:
+    model = values.get("camera_model")
+    if values.get("is_fisheye") or (model is not None and model not in _PERSPECTIVE_MODELS):
+        raise InputError(
+            path,
+            f"{where}: camera_model {model or 'fisheye'!r} is not a perspective model; thgs reads "
+            f"{', '.join(_PERSPECTIVE_MODELS)} (with k1 k2 k3 p1 p2): undistort the images to "
+            "pinhole ones first (e.g. colmap image_undistorter)",
+        )
+    coeffs = np.zeros(8)
+    for key, slot in _OPENCV_SLOTS.items():
+        if key in values:
+            coeffs[slot] = get_number(values, key, path, where)
+    if "k4" in values and get_number(values, "k4", path, where) != 0.0:
+        raise InputError(
+            path,
+            f"{where}: k4 = {values['k4']} on a perspective camera; its meaning differs between "
+            "tools (a fourth radial term or OpenCV's rational one): undistort the images first",
+        )
+    return coeffs
+
+
 def _intrinsics(
     values: dict[str, Any], root: Path, file_path: str, path: Path, where: str
 ) -> tuple[list[list[float]], int, int]:
-    model = values.get("camera_model")
-    if model is not None and model not in _PINHOLE_MODELS:
-        raise InputError(
-            path,
-            f"{where}: camera_model {model!r} is not a pinhole model; undistort the images "
-            "first (thgs needs undistorted pinhole cameras)",
-        )
-    for key in _DISTORTION_KEYS:
-        if key in values and get_number(values, key, path, where) != 0.0:
-            raise InputError(
-                path,
-                f"{where}: distortion {key} = {values[key]}; thgs needs undistorted images "
-                "(undistort them and write zero distortion)",
-            )
     if "w" in values and "h" in values:
         width, height = get_number(values, "w", path, where), get_number(values, "h", path, where)
         if width != int(width) or height != int(height) or width <= 0 or height <= 0:
@@ -129,11 +145,13 @@ def read_transforms_json(
 
     Returns:
         :class:`Cameras` in file order; names are the ``file_path`` values (without a leading ./).
+        Cameras with lens distortion are the pinhole cameras of their undistorted images, with
+        :attr:`Cameras.distortion` set (the intrinsics, coefficients and sizes of the files).
 
     Raises:
-        InputError: unreadable file, no frames, a missing or non-finite value, non-zero distortion
-            or a non-pinhole model, a non-rigid ``transform_matrix``, an image needed for its size
-            that does not exist.
+        InputError: unreadable file, no frames, a missing or non-finite value, a fisheye or other
+            non-perspective model, a non-zero ``k4``, a non-rigid ``transform_matrix``, an image
+            needed for its size that does not exist.
     """
     path = Path(path)
     data = load_json(path)
@@ -155,7 +173,7 @@ def read_transforms_json(
         raise InputError(
             path, "undo_applied_transform was asked but the file has no applied_transform"
         )
-    viewmats, Ks, widths, heights, names = [], [], [], [], []
+    viewmats, Ks, coeffs, widths, heights, names = [], [], [], [], [], []
     for index, frame in enumerate(data["frames"]):
         if not isinstance(frame, dict) or not isinstance(frame.get("file_path"), str):
             raise InputError(path, f"frame {index} has no 'file_path' string")
@@ -164,6 +182,7 @@ def read_transforms_json(
         where = f"frame {index} ({file_path!r})"
         values = {**shared, **{key: frame[key] for key in _INTRINSIC_KEYS if key in frame}}
         K, width, height = _intrinsics(values, root, name, path, where)
+        coeffs.append(_coefficients(values, path, where))
         camtoworld = get_matrix(frame, "transform_matrix", (4, 4), path, where)
         rotation = camtoworld[:3, :3]
         if (
@@ -180,7 +199,9 @@ def read_transforms_json(
         widths.append(width)
         heights.append(height)
         names.append(name)
-    cameras = Cameras.from_lists(viewmats, Ks, widths, heights, names)
+    if any(row.any() for row in coeffs):
+        logger.info("%s: cameras with lens distortion; masks are undistorted into pinholes", path)
+    cameras = Cameras.from_distorted(viewmats, Ks, coeffs, widths, heights, names)
     return cameras.check(source=str(path))
 
 
@@ -191,9 +212,10 @@ def write_transforms_json(path: str | os.PathLike[str], cameras: Cameras) -> Non
     Intrinsics are written once at the top when all cameras share them, per frame otherwise.
 
     Raises:
-        InputError: the cameras fail :meth:`Cameras.check` or have a skewed K.
+        InputError: the cameras fail :meth:`Cameras.check`, have a skewed K or lens distortion.
     """
     cameras.check(source=f"cameras to write to {os.fspath(path)}")
+    refuse_distortion(cameras, path)
     if bool((cameras.Ks[:, 0, 1] != 0).any()):
         raise InputError(path, "transforms.json cannot store skew (K[0, 1] != 0)")
 

@@ -166,8 +166,10 @@ def image_jobs(
 
     Args:
         image_dir: the folder of images (``images/`` of a dataset).
-        cameras: if given, exactly the cameras' images, each at its camera's size; otherwise
-            every .png/.jpg/.jpeg in ``image_dir`` (sorted by name) at LangSplat's size.
+        cameras: if given, exactly the cameras' images, each at its image file's size
+            (:meth:`thgs.Cameras.file_sizes`: with lens distortion, the distorted file's, and
+            :func:`thgs.guidance.load_guidance` undistorts the masks); otherwise every
+            .png/.jpg/.jpeg in ``image_dir`` (sorted by name) at LangSplat's size.
         target_width: LangSplat's explicit resolution (output width in pixels); not with
             ``cameras``.
 
@@ -188,11 +190,10 @@ def image_jobs(
                 image_dir,
                 f"no image for {len(missing)} of {len(cameras)} cameras (first: {missing[:5]})",
             )
+        widths, heights = cameras.file_sizes()
         return [
             ImageJob(path, stem, (int(width), int(height)))
-            for path, stem, width, height in zip(
-                paths, cameras.stems, cameras.widths, cameras.heights
-            )
+            for path, stem, width, height in zip(paths, cameras.stems, widths, heights)
         ]
     paths = sorted(
         path
