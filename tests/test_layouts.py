@@ -170,6 +170,18 @@ def test_two_folders_fitting_the_source_are_an_error(tmp_path):
     assert f"2 folders fit it: {first}, {second}; choose one with --source" in message
 
 
+def test_a_malformed_cfg_args_names_the_flag(tmp_path):
+    (tmp_path / "cfg_args").write_text("Namespace(source_path=open('x'))")
+    with pytest.raises(InputError) as caught:
+        find_model_source(tmp_path)
+    assert str(caught.value) == (
+        f"{tmp_path / 'cfg_args'}: source_path= is not a literal value; --source decides instead"
+    )
+    (tmp_path / "cfg_args").write_text("Namespace(source_path=3)")
+    with pytest.raises(InputError, match="source_path must be a folder name, got 3; --source"):
+        find_model_source(tmp_path)
+
+
 def test_no_cfg_args_or_no_source_path(tmp_path):
     assert find_model_source(tmp_path) is None
     (tmp_path / "cfg_args").write_text("Namespace(sh_degree=3)")

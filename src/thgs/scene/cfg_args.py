@@ -178,13 +178,18 @@ def find_model_source(
     path = model_dir / CFG_ARGS
     if not path.is_file():
         return None
-    settings = read_cfg_args(path)
+    try:
+        settings = read_cfg_args(path)
+    except InputError as exc:
+        raise InputError(path, f"{exc.problem}; --source decides instead") from exc
     named = settings.get("source_path")
     images = settings.get("images") if isinstance(settings.get("images"), str) else None
     if named is None:
         return ModelSource(path, None, None, images=images)
     if not isinstance(named, str) or not named.strip():
-        raise InputError(path, f"source_path must be a folder name, got {named!r}")
+        raise InputError(
+            path, f"source_path must be a folder name, got {named!r}; --source decides instead"
+        )
     here = Path(os.path.abspath(cwd if cwd is not None else os.getcwd()))
     model = Path(os.path.abspath(model_dir))
     root = _training_root(model_dir, settings.get("model_path"))
