@@ -354,6 +354,12 @@ def test_eval_runs_every_protocol_of_a_synthetic_dataset(
         assert [(i["frame"], i["prompt"]) for i in results[name]["items"]] == expected
         assert all(0.0 <= i["iou"] <= 1.0 for i in results[name]["items"])
     assert results["lerf"]["settings"]["selection"] == "auto"
+    # the folder's name is no LERF scene's: OpenGaussian's protocol queries every category
+    assert results["lerf-opengaussian"]["notes"] == [
+        f"scene name {small_dataset.name!r} is none of OpenGaussian's (figurines, ramen, "
+        "teatime, waldo_kitchen): every labelled category is queried"
+    ]
+    assert "every labelled category is queried" in " ".join(stdout.split())
     assert results["lerf-paper"]["settings"]["selection"] == "paper"
     # the hierarchy protocol is the field's matched mIoU against the ground truth
     field = load_field(small_field)

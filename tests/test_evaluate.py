@@ -197,6 +197,30 @@ def test_opengaussian_thresholds_the_silhouette_at_07(scene):
     assert evaluate_lerf(best, gaussians, cameras, frames).metrics["miou"] < 1.0
 
 
+def test_opengaussian_says_which_prompt_list_the_scene_name_chose(scene):
+    gaussians, cameras = scene
+    truth = _truth_masks(gaussians, cameras, threshold=0.7)
+    frames = [("frame_00001", _frame({"mug": truth[..., 0], "bear": truth[..., 1]}))]
+    best = FieldQuery(_regions(), _TableEncoder(), QueryConfig(mode="level"))
+    # any other name: every labelled category is queried (both perfect)
+    other = evaluate_lerf_opengaussian(best, gaussians, cameras, frames, scene_name="desk")
+    assert other.metrics["miou"] == 1.0
+    assert other.notes == (
+        "scene name 'desk' is none of OpenGaussian's (figurines, ramen, teatime, "
+        "waldo_kitchen): every labelled category is queried",
+    )
+    # "teatime": only OpenGaussian's teatime prompts, which name neither, so both score 0
+    teatime = evaluate_lerf_opengaussian(best, gaussians, cameras, frames, scene_name="teatime")
+    assert teatime.metrics["miou"] == 0.0
+    assert [item["iou"] for item in teatime.items] == [0.0, 0.0]
+    assert teatime.notes == (
+        "scene name 'teatime' → OpenGaussian's fixed prompt list for teatime (14 prompts); "
+        "2 labelled (frame, category) pairs outside it score 0",
+    )
+    assert teatime.settings["scene_name"] == "teatime" and len(teatime.settings["prompts"]) == 14
+    assert teatime.to_json()["notes"] == list(teatime.notes)
+
+
 def test_langsplat_protocol_composes_the_rules_on_rendered_relevancy(scene):
     gaussians, cameras = scene
     masks = _truth_masks(gaussians, cameras)

@@ -11,8 +11,8 @@ import tyro
 from rich.table import Table
 
 from thgs.cli._console import StageBars, setup_logging, stage_progress, stdout
-from thgs.errors import ThgsError
-from thgs.scene import load_scene
+from thgs.errors import InputError, ThgsError
+from thgs.scene import Scene, load_scene
 
 __all__ = ["build", "demo"]
 
@@ -33,6 +33,14 @@ def _counts_table(title: str, counts, timings: dict[str, float]) -> Table:
         + ")",
     )
     return table
+
+
+def _unfound_source(loaded: Scene) -> str:
+    """'' or, when the model's cfg_args names training data that is not here, '; <why>'."""
+    named = loaded.model_source
+    if named is None or named.named is None or named.folder is not None:
+        return ""
+    return f"; {named.describe()}"
 
 
 def build(
@@ -62,11 +70,13 @@ def build(
     and writes one field file (thgs.field), atomically.
 
     Args:
-        scene: a trained 3DGS/2DGS model folder or a .ply file (with cameras: cameras.json in the
-            folder, or --source).
+        scene: a trained 3DGS/2DGS model folder or a .ply file. A model folder's cfg_args
+            names its training data (source_path), used as --source when found here
+            (docs/build.md); else the cameras are the folder's cameras.json.
         out: the field file to write (e.g. scene.thgs); replaced if it exists.
         guidance: the language_features folder (LangSplat layout: <stem>_s.npy, <stem>_f.npy);
-            default: language_features in --source, else in the scene folder.
+            default: language_features in the source (--source, or cfg_args's), else in the
+            scene folder.
         preset: the reference's settings for LERF-OVS (lerf, the default) or 3D-OVS (3dovs).
         config: every setting from a file instead of a preset: a JSON config (the "config"
             object of a field's record, FieldConfig.to_json) or a field file, to rebuild a
@@ -74,7 +84,9 @@ def build(
         set: change single settings, e.g. --set merge.min_region_gaussians=30
             superpoints.lift.raster.backend=torch (dotted names as in the config; values are
             JSON, or text); every setting of every stage is reachable (docs/build.md).
-        source: cameras from here instead of the model's cameras.json (COLMAP, transforms.json).
+        source: the training data folder (COLMAP sparse/0 or transforms.json, images/,
+            language_features/) or a camera file; decides over the model's cfg_args and
+            cameras.json.
         iteration: which iteration_* of a model folder (default: the newest).
         images: image folder name inside the source, e.g. images_4.
         scale: image size / camera-file size, e.g. 0.25 for images_4. Never guessed.
@@ -113,8 +125,18 @@ def build(
         settings = replace(settings, repeats=replace(settings.repeats, enabled=False))
     loaded = load_scene(scene, source=source, iteration=iteration, images=images, scale=scale)
     if loaded.cameras is None:
-        raise ThgsError(f"{scene}: no cameras; pass --source with COLMAP or transforms.json")
-    guidance = guidance if guidance is not None else guidance_folder(scene, source)
+        raise InputError(
+            scene,
+            f"no cameras{_unfound_source(loaded)}; pass --source with COLMAP or transforms.json",
+        )
+    if guidance is None:
+        guidance = guidance_folder(scene, loaded.source)
+        if not guidance.is_dir():
+            raise InputError(
+                guidance,
+                f"language features folder not found{_unfound_source(loaded)}; pass --source "
+                "with the training data folder that holds language_features/, or --guidance",
+            )
     views = load_guidance(guidance, loaded.cameras, resize=resize)
     space = space if space is not None else guidance_space(guidance, views)
     with stage_progress() as bar:
@@ -129,7 +151,7 @@ def build(
     field = record_scene(
         field,
         scene,
-        source=source,
+        source=loaded.source,
         iteration=iteration,
         images=images,
         scale=scale,

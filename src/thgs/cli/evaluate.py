@@ -53,7 +53,10 @@ def evaluate(
         protocol: registered protocols (thgs.eval.protocols): lerf (THGS: 3D selection →
             rendered mask), lerf-langsplat (2D relevancy maps), lerf-opengaussian (silhouette >
             0.7), 3dovs, scannet, hierarchy (synthetic levels); default: all with ground truth.
-        labels: the LERF-OVS label folder of this scene (e.g. label/teatime), if not in DATASET.
+        labels: the LERF-OVS labels, if neither in DATASET/label nor in LangSplat's
+            DATASET/../label/<scene>: the scene's folder (lerf_ovs/label/teatime) or the folder
+            of every scene (lerf_ovs/label: its <scene>/ is taken, <scene> being DATASET's
+            name); decides when both places hold labels.
         segmentations: the 3D-OVS segmentations folder, if not DATASET/segmentations.
         scannet: the ScanNet label PLY (<scene>_vh_clean_2.labels.ply), if not in DATASET.
         scannet_level: the field level whose features classify ScanNet points (3: objects).
@@ -107,6 +110,8 @@ def evaluate(
     with atomic_output(out.with_suffix(".md"), "w") as handle:
         handle.write(report.table() + "\n")
     stdout.print(_report_table(f"{ground_truth.scene_name}: {field.name}", report))
+    for note in report.notes():
+        stdout.print(note, highlight=False)
     stdout.print(f"report: {out} (table: {out.with_suffix('.md')})")
 
 

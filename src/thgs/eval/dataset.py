@@ -6,9 +6,10 @@
 ==================== ============================================================================
 source (protocols)   ground truth
 ==================== ============================================================================
-``lerf`` (``lerf``,  ``label/*.json`` (LERF-OVS, one file per frame; LangSplat's release keeps
-``lerf-langsplat``,  them in ``label/<scene>/``: pass that folder with ``lerf=``), or the folder
-``lerf-opengaussian``) itself when it holds ``frame_*.json``
+``lerf`` (``lerf``,  ``label/frame_*.json`` (LERF-OVS, one file per frame), LangSplat's sibling
+``lerf-langsplat``,  ``../label/<scene>/`` (``lerf_ovs/label/teatime`` for ``lerf_ovs/teatime``),
+``lerf-opengaussian``) or the folder itself when it holds ``frame_*.json``; ``lerf=`` may name
+                     the scene's label folder or the ``label/`` folder of every scene
 ``three_dovs``       ``segmentations/`` with ``classes.txt``
 (``3dovs``)
 ``scannet``          ``scannet/*.labels.ply`` or ``*_vh_clean_2.labels.ply`` in the folder
@@ -23,6 +24,7 @@ markdown table).
 from __future__ import annotations
 
 import logging
+import os
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -56,7 +58,9 @@ class GroundTruth:
     Attributes:
         paths: source name (:func:`thgs.eval.protocols.source_names`, e.g. ``"lerf"``,
             ``"three_dovs"``) → its file or folder; a kind the scene lacks is absent.
-        scene_name: the scene's name (the folder's), for OpenGaussian's prompt lists.
+        scene_name: the scene's name: the dataset folder's name as given (a symbolic link's
+            own name, not its target's); it chooses OpenGaussian's prompt list and LangSplat's
+            ``../label/<scene>`` folder.
     """
 
     paths: Mapping[str, Path] = field(default_factory=dict)
@@ -77,11 +81,14 @@ def find_ground_truth(dataset: str | Path, **given: str | Path | None) -> Ground
     Args:
         dataset: the scene's dataset folder.
         given: a path per source name where it is not in the usual place, e.g.
-            ``lerf="lerf_ovs/label/teatime"``, ``three_dovs=…``, ``scannet=…`` (None: look).
+            ``lerf="lerf_ovs/label/teatime"`` (or ``lerf="lerf_ovs/label"``, the folder of
+            every scene's labels: its ``<scene name>/`` is taken), ``three_dovs=…``,
+            ``scannet=…`` (None: look).
 
     Raises:
-        InputError: ``dataset`` is not a folder, an explicit path does not exist, or a keyword
-            names no source.
+        InputError: ``dataset`` is not a folder, an explicit path does not exist or holds no
+            ground truth of that kind, a keyword names no source, or two places in and around
+            ``dataset`` hold the same kind (the message names both and the flag that decides).
     """
     dataset = Path(dataset)
     if not dataset.is_dir():
@@ -91,15 +98,21 @@ def find_ground_truth(dataset: str | Path, **given: str | Path | None) -> Ground
         raise InputError(
             "ground truth", f"unknown kind {unknown[0]!r}; known: {', '.join(source_names())}"
         )
+    scene_name = Path(os.path.abspath(dataset)).name
     paths = {}
     for source in sources():
         explicit = given.get(source.name)
         if explicit is not None and not Path(explicit).exists():
             raise InputError(explicit, f"not found (given for {source.name})")
-        found = Path(explicit) if explicit is not None else source.find(dataset)
+        if explicit is None:
+            found = source.find(dataset)
+        elif source.given is not None:
+            found = source.given(Path(explicit), scene_name)
+        else:
+            found = Path(explicit)
         if found is not None:
             paths[source.name] = found
-    return GroundTruth(paths, dataset.resolve().name)
+    return GroundTruth(paths, scene_name)
 
 
 @dataclass(frozen=True)
@@ -130,12 +143,19 @@ class EvalReport:
             "results": [result.to_json() for result in self.results],
         }
 
+    def notes(self) -> list[str]:
+        """Every result's notes as ``"<protocol>: <note>"``, in result order."""
+        return [f"{result.protocol}: {note}" for result in self.results for note in result.notes]
+
     def table(self) -> str:
-        """A markdown table: one row per (protocol, metric), values in [0, 1]."""
+        """A markdown table: one row per (protocol, metric), values in [0, 1]; the results'
+        notes (:meth:`notes`) follow it as a list."""
         lines = ["| protocol | metric | value | scored items |", "|---|---|---|---|"]
         for result in self.results:
             for name, value in result.metrics.items():
                 lines.append(f"| {result.protocol} | {name} | {value:.4f} | {len(result.items)} |")
+        if self.notes():
+            lines += ["", *(f"- {note}" for note in self.notes())]
         return "\n".join(lines)
 
 

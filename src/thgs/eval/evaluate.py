@@ -92,12 +92,15 @@ class ProtocolResult:
         metrics: the headline numbers, in [0, 1] (e.g. ``miou``, ``accuracy``).
         items: one JSON-ready dict per scored unit: ``{"frame", "prompt", "iou", ...}``.
         settings: what the protocol was run with (thresholds, levels, prompt lists).
+        notes: what a reader of the numbers must know, one sentence each (e.g. which prompt
+            list applied and why); reports print them under the table.
     """
 
     protocol: str
     metrics: dict[str, float]
     items: list[dict[str, Any]] = field(default_factory=list)
     settings: dict[str, Any] = field(default_factory=dict)
+    notes: tuple[str, ...] = ()
 
     def to_json(self) -> dict[str, Any]:
         """JSON values; NaN (a class absent from the ground truth) becomes null."""
@@ -105,6 +108,7 @@ class ProtocolResult:
             "protocol": self.protocol,
             "metrics": _finite(self.metrics),
             "settings": self.settings,
+            "notes": list(self.notes),
             "items": [_finite(item) for item in self.items],
         }
 
@@ -295,9 +299,14 @@ def evaluate_lerf_opengaussian(
     teatime, waldo_kitchen) only its fixed prompts are queried, and a labelled category outside
     them scores 0, as there. Averages are flat over (frame, prompt).
 
+    Args:
+        scene_name: chooses the prompt list: OpenGaussian's list of the scene of that name, else
+            none (every labelled category is queried). It is only a name (the dataset folder's):
+            the result's ``notes`` say which list applied and why.
+
     Returns:
         metrics ``miou`` and ``acc@0.25`` / ``acc@0.5`` (share of (frame, prompt) pairs whose
-        IoU exceeds 0.25 / 0.5); one item per (frame, category).
+        IoU exceeds 0.25 / 0.5); one item per (frame, category); one note on the prompt list.
     """
     prompts = OPENGAUSSIAN_LERF_PROMPTS.get(scene_name)
     result = evaluate_lerf(
@@ -323,7 +332,20 @@ def evaluate_lerf_opengaussian(
         "acc@0.25": float((ious > 0.25).mean()) if ious.size else float("nan"),
         "acc@0.5": float((ious > 0.5).mean()) if ious.size else float("nan"),
     }
-    return ProtocolResult("lerf-opengaussian", metrics, items, result.settings)
+    if prompts is None:
+        note = (
+            f"scene name {scene_name!r} is none of OpenGaussian's "
+            f"({', '.join(OPENGAUSSIAN_LERF_PROMPTS)}): every labelled category is queried"
+        )
+    else:
+        outside = len(items) - len(scored)
+        note = (
+            f"scene name {scene_name!r} → OpenGaussian's fixed prompt list for {scene_name} "
+            f"({len(prompts)} prompts); {outside} labelled (frame, category) pairs outside it "
+            "score 0"
+        )
+    settings = {**result.settings, "scene_name": scene_name}
+    return ProtocolResult("lerf-opengaussian", metrics, items, settings, (note,))
 
 
 def evaluate_3dovs(

@@ -15,6 +15,7 @@ from thgs._json import load_json
 from thgs.errors import InputError
 from thgs.scene.cameras import Cameras
 from thgs.scene.cameras_json import read_cameras_json
+from thgs.scene.cfg_args import ModelSource, find_model_source
 from thgs.scene.colmap import read_colmap
 from thgs.scene.gaussians import Gaussians
 from thgs.scene.gsplat_checkpoint import find_gsplat_checkpoint, read_gsplat_checkpoint
@@ -40,6 +41,12 @@ class Scene:
         ply_path: the file the Gaussians were read from: a PLY, or a gsplat checkpoint (.pt).
         cameras_path: the camera file or COLMAP folder, or None.
         found: what was recognised, one line each, in the order it was looked at.
+        source: the training data folder (or camera file) the cameras were read from: the one
+            given, or the one the model folder's ``cfg_args`` names; None when the cameras came
+            from the model's ``cameras.json`` or there are none.
+        model_source: what the model folder's ``cfg_args`` says about its training data and
+            where that was found (:func:`thgs.scene.cfg_args.find_model_source`); None when no
+            ``cfg_args`` was read (a PLY file, no such file, or a source was given).
     """
 
     gaussians: Gaussians
@@ -47,6 +54,8 @@ class Scene:
     ply_path: Path
     cameras_path: Path | None
     found: tuple[str, ...]
+    source: Path | None = None
+    model_source: ModelSource | None = None
 
     def to(self, device: torch.device | str) -> Scene:
         """The scene with its Gaussians on ``device`` (cameras stay on the CPU in float64:
@@ -184,13 +193,16 @@ def load_scene(
     """Load a scene from a trained model folder, a gsplat checkpoint or a PLY file.
 
     Args:
-        path: a 3DGS/2DGS model folder (``point_cloud/iteration_*/point_cloud.ply`` and usually
-            ``cameras.json``), a ``.ply`` file, a gsplat result folder (``ckpts/ckpt_*.pt``) or
-            one gsplat checkpoint ``.pt`` (:func:`thgs.scene.read_gsplat_checkpoint`; gsplat
-            keeps no cameras with it: give ``source``).
-        source: where the cameras come from, overriding the model's ``cameras.json``: the
-            training data folder (COLMAP ``sparse/0`` + ``images/``, or ``transforms.json``) or a
-            camera file. See :func:`load_cameras`.
+        path: a 3DGS/2DGS model folder (``point_cloud/iteration_*/point_cloud.ply``, usually
+            ``cameras.json`` and ``cfg_args``), a ``.ply`` file, a gsplat result folder
+            (``ckpts/ckpt_*.pt``) or one gsplat checkpoint ``.pt``
+            (:func:`thgs.scene.read_gsplat_checkpoint`; gsplat keeps no cameras with it: give
+            ``source``).
+        source: where the cameras come from: the training data folder (COLMAP ``sparse/0`` +
+            ``images/``, or ``transforms.json``) or a camera file. See :func:`load_cameras`.
+            Default: for a model folder, the training data its ``cfg_args`` names when it is
+            found here (:func:`thgs.scene.cfg_args.find_model_source`), else the model's
+            ``cameras.json``.
         iteration: which ``iteration_*`` of a model folder, or which step of a gsplat result
             folder; default the newest.
         images: the image folder's name inside ``source`` (e.g. ``images_4``); default
@@ -202,11 +214,13 @@ def load_scene(
         a :class:`Scene`; it logs, and lists in ``found``, what it recognised.
 
     Raises:
-        InputError: nothing recognisable at ``path`` or ``source``, or any reader's error.
+        InputError: nothing recognisable at ``path`` or ``source``, a malformed ``cfg_args``,
+            two folders that fit its ``source_path``, or any reader's error.
     """
     path = Path(path)
     found: list[str] = []
     model_cameras: Path | None = None
+    model_source: ModelSource | None = None
     if path.is_dir() and not (path / "point_cloud").is_dir() and (path / "ckpts").is_dir():
         ply_path = find_gsplat_checkpoint(path, iteration)
         found.append(f"gsplat result folder {path}, checkpoint {ply_path.name}")
@@ -215,6 +229,24 @@ def load_scene(
         found.append(f"trained model folder {path}, iteration {chosen}")
         if (path / "cameras.json").is_file():
             model_cameras = path / "cameras.json"
+        if source is None:
+            model_source = find_model_source(path)
+        if model_source is not None:
+            found.append(model_source.describe())
+            if model_source.folder is None and model_cameras is not None:
+                logger.warning(
+                    "cameras from %s: the training data named by %s is not here (pass --source "
+                    "with it to read its cameras)",
+                    model_cameras,
+                    model_source.cfg_args,
+                )
+            source = model_source.folder
+            if source is not None and model_source.images not in (None, "images", images):
+                found.append(
+                    f"{model_source.cfg_args} trained on the images in "
+                    f"{model_source.images!r}; thgs checks the cameras against "
+                    f"{images or 'images'!r} (--images and --scale choose)"
+                )
     elif path.is_file():
         if path.suffix.lower() not in (".ply", ".pt"):
             raise InputError(
@@ -242,15 +274,38 @@ def load_scene(
     cameras_path: Path | None = None
     camera_source = source if source is not None else model_cameras
     if camera_source is not None:
-        cameras, cameras_path, camera_found = load_cameras(
-            camera_source,
-            images=images,
-            scale=scale,
-            undo_applied_transform=undo_applied_transform,
-        )
+        try:
+            cameras, cameras_path, camera_found = load_cameras(
+                camera_source,
+                images=images,
+                scale=scale,
+                undo_applied_transform=undo_applied_transform,
+            )
+        except InputError as exc:
+            if model_source is None or source is None:
+                raise
+            instead = "" if model_cameras is None else f", e.g. --source {model_cameras}"
+            raise InputError(
+                exc.source,
+                f"{exc.problem} (the source named by {model_source.cfg_args}; --source "
+                f"decides{instead})",
+            ) from exc
         found.extend(camera_found)
+    elif model_source is not None and model_source.named is not None:
+        found.append(
+            "no cameras: no cameras.json in the model folder and its source is not here (pass "
+            "--source with COLMAP, transforms.json or cameras.json)"
+        )
     else:
         found.append("no cameras (pass a source with COLMAP, transforms.json or cameras.json)")
     for line in found:
         logger.info("%s", line)
-    return Scene(gaussians, cameras, ply_path, cameras_path, tuple(found))
+    return Scene(
+        gaussians,
+        cameras,
+        ply_path,
+        cameras_path,
+        tuple(found),
+        source=None if source is None else Path(source),
+        model_source=model_source,
+    )

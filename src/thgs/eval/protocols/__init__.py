@@ -50,11 +50,15 @@ class GroundTruthSource:
             explicitly to :func:`thgs.eval.find_ground_truth` (e.g. ``"lerf"``).
         find: the path of this ground truth in a dataset folder, or None when it has none.
         describe: what and where it is, for messages and docs.
+        given: the path of this ground truth from a path given explicitly and the scene's name
+            (e.g. a folder holding one sub-folder per scene → the scene's); None: the given
+            path as it is.
     """
 
     name: str
     find: Callable[[Path], Path | None]
     describe: str
+    given: Callable[[Path, str], Path] | None = None
 
 
 @dataclass(frozen=True)

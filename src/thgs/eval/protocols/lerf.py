@@ -6,8 +6,11 @@ the other two LERF protocols read too."""
 
 from __future__ import annotations
 
+import logging
+import os
 from pathlib import Path
 
+from thgs.errors import InputError
 from thgs.eval.evaluate import evaluate_lerf, read_lerf_frames
 from thgs.eval.protocols import (
     EvalContext,
@@ -17,15 +20,69 @@ from thgs.eval.protocols import (
     register_source,
 )
 
-__all__ = ["find_lerf_labels", "frames"]
+__all__ = ["find_lerf_labels", "frames", "lerf_label_folder"]
+
+logger = logging.getLogger(__name__)
+
+
+def _has_frames(folder: Path) -> bool:
+    return folder.is_dir() and any(folder.glob("frame_*.json"))
 
 
 def find_lerf_labels(dataset: Path) -> Path | None:
-    """``label/`` with ``frame_*.json`` in the dataset, or the dataset folder itself."""
-    for candidate in (dataset / "label", dataset):
-        if candidate.is_dir() and any(candidate.glob("frame_*.json")):
-            return candidate
-    return None
+    """The LERF-OVS label folder of a scene's dataset folder, or None when there is none.
+
+    Looks for ``frame_*.json`` in ``dataset/label/``, in LangSplat's sibling
+    ``dataset/../label/<scene>/`` (``lerf_ovs/label/teatime`` for ``lerf_ovs/teatime``; the
+    scene is the dataset folder's name as given) and in ``dataset`` itself.
+
+    Raises:
+        InputError: more than one of these holds labels (two different folders: the message
+            names them; ``thgs eval --labels``, or ``lerf=`` in Python, decides).
+    """
+    dataset = Path(os.path.abspath(dataset))
+    candidates = (dataset / "label", dataset.parent / "label" / dataset.name, dataset)
+    found: dict[Path, Path] = {}
+    for candidate in candidates:
+        if _has_frames(candidate):
+            found.setdefault(candidate.resolve(), candidate)
+    if len(found) > 1:
+        raise InputError(
+            dataset,
+            "LERF-OVS labels (frame_*.json) in two places: "
+            + " and ".join(map(str, found.values()))
+            + "; choose one with --labels (lerf= in Python)",
+        )
+    return next(iter(found.values()), None)
+
+
+def _has_json(folder: Path) -> bool:
+    return folder.is_dir() and any(path.suffix == ".json" for path in folder.iterdir())
+
+
+def lerf_label_folder(given: Path, scene: str) -> Path:
+    """The label folder of ``scene`` from a folder given for it: the folder itself when it holds
+    ``*.json`` label files, else its ``<scene>/`` sub-folder (LangSplat's ``lerf_ovs/label``,
+    which THGS's and LangSplat's evaluation scripts are given), else ``label/<scene>/`` in it
+    (LangSplat's ``lerf_ovs``).
+
+    Raises:
+        InputError: none holds label files (the message lists the sub-folders there are).
+    """
+    if not given.is_dir() or _has_json(given):
+        return given
+    for inside in (given / scene, given / "label" / scene):
+        if _has_json(inside):
+            logger.info("LERF-OVS labels of %s: %s", scene, inside)
+            return inside
+    folders = sorted(child.name for child in given.iterdir() if child.is_dir())
+    holds = f"its folders: {', '.join(folders)}" if folders else "it holds no folder"
+    raise InputError(
+        given,
+        f"holds no LERF-OVS label files (frame_*.json), nor {scene}/ or label/{scene}/ with "
+        f"them ({holds}; {scene!r} is the dataset folder's name); pass the folder of the "
+        "scene's frame_*.json with --labels",
+    )
 
 
 def frames(context: EvalContext):
@@ -37,7 +94,9 @@ register_source(
     GroundTruthSource(
         "lerf",
         find_lerf_labels,
-        "LERF-OVS frame labels: label/*.json, or frame_*.json in the folder",
+        "LERF-OVS frame labels: label/frame_*.json, ../label/<scene>/ (LangSplat's release), "
+        "or frame_*.json in the folder",
+        lerf_label_folder,
     )
 )
 

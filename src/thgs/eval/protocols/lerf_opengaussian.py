@@ -1,5 +1,7 @@
 """``lerf-opengaussian``: LERF-OVS under OpenGaussian's rule: silhouettes > 0.7 and, for its
-four scenes, only its fixed prompt lists (:func:`thgs.eval.evaluate_lerf_opengaussian`)."""
+four scenes, only its fixed prompt lists (:func:`thgs.eval.evaluate_lerf_opengaussian`). Which
+list applies follows from the scene's name alone (the dataset folder's, e.g. ``teatime``); the
+result's note says which list applied and why, and reports print it under the table."""
 
 from __future__ import annotations
 
