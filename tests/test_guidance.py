@@ -135,7 +135,7 @@ def test_load_guidance_matches_cameras(tmp_path):
     views = load_guidance(tmp_path, cameras_for(["a", "b"], 3, 2))
     assert [v.stem for v in views] == ["a", "b"]
     np.testing.assert_array_equal(views[0].features, features(8, seed=1))
-    with pytest.raises(InputError, match=r"masks are 3×2 but the camera is 6×4; pass resize=True"):
+    with pytest.raises(InputError, match=r"masks are 3×2 but the camera is 6×4; resample them with --resize"):
         load_guidance(tmp_path, cameras_for(["a"], 6, 4))
     resized = load_guidance(tmp_path, cameras_for(["a"], 6, 4), resize=True)
     assert resized[0].segments.shape == (4, 4, 6)
