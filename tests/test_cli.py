@@ -449,3 +449,157 @@ def test_bench_compares_variants_on_a_reduced_scene(tmp_path, capsys):
     assert "| synth-small | exact lifting |" in markdown and "Paper orderings" in markdown
     code, _, err = run(["bench", "-o", str(out), "--variants", "no such thing"], capsys)
     assert code == 2 and "unknown 'no such thing'" in err
+
+
+# --- guidance guards, the recorded text model, messages in flags ---------------------------------
+
+
+def _copy_guidance(small_dataset: Path, folder: Path, *, empty: bool = False) -> Path:
+    """The small dataset's language_features copied to ``folder``; ``empty``: no mask at all."""
+    import numpy as np
+
+    shutil.copytree(small_dataset / "language_features", folder)
+    if empty:
+        for path in folder.glob("*_s.npy"):
+            np.save(path, np.full_like(np.load(path), -1.0))
+        for path in folder.glob("*_f.npy"):
+            np.save(path, np.load(path)[:0])
+    return folder
+
+
+def test_build_refuses_guidance_without_a_mask(small_dataset, tmp_path, capsys):
+    guidance = _copy_guidance(small_dataset, tmp_path / "lf", empty=True)
+    out = tmp_path / "f.thgs"
+    argv = ["build", str(small_dataset), "-o", str(out), "--guidance", str(guidance)]
+    code, stdout, err = run(argv, capsys)
+    err = " ".join(err.split())
+    assert code == 2 and stdout == "" and not out.exists()
+    assert err.startswith(f"error: {guidance}: none of the 8 views has a mask")
+    assert "thgs preprocess --pred-iou-threshold, --stability-threshold, --min-region-area" in err
+
+
+def test_build_refuses_an_embedding_file_that_disagrees(small_dataset, tmp_path, capsys):
+    guidance = _copy_guidance(small_dataset, tmp_path / "lf")
+    out = tmp_path / "f.thgs"
+    base = ["build", str(small_dataset), "-o", str(out), "--guidance", str(guidance)]
+    code, _, err = run([*base, "--space", "other/space"], capsys)
+    err = " ".join(err.split())
+    assert code == 2 and err.startswith("error: --space: 'other/space', but ")
+    assert "records 'sentence-transformers/all-MiniLM-L6-v2'" in err
+    (guidance / "embedding.json").write_text('{"space": "my/clip", "dim": 512}')
+    code, _, err = run(base, capsys)
+    err = " ".join(err.split())
+    assert code == 2 and not out.exists()
+    assert f"error: {guidance / 'embedding.json'}: records 512-D features of my/clip" in err
+    assert "hold 384-D features" in err
+    (guidance / "embedding.json").unlink()  # 384-D features without a record: name their space
+    code, _, err = run([*base, "--text-model", str(tmp_path / "nowhere")], capsys)
+    assert code == 2 and "384-D features and no embedding.json" in " ".join(err.split())
+    base += ["--space", "sentence-transformers/all-MiniLM-L6-v2"]
+    code, _, err = run([*base, "--text-model", str(tmp_path / "nowhere")], capsys)
+    err = " ".join(err.split())
+    assert code == 2 and err == f"error: --text-model: {tmp_path / 'nowhere'} is not a folder"
+
+
+def test_build_records_the_preprocess_text_model(small_dataset, tmp_path, capsys):
+    from thgs.field import load_field
+    from thgs.pipeline import recorded_config
+
+    guidance = _copy_guidance(small_dataset, tmp_path / "lf")
+    model = tmp_path / "minilm copy"
+    model.mkdir()
+    document = json.loads((guidance / "embedding.json").read_text())
+    (guidance / "embedding.json").write_text(json.dumps({**document, "model": str(model)}))
+    out = tmp_path / "f.thgs"
+    argv = ["build", str(small_dataset), "-o", str(out), "--guidance", str(guidance)]
+    code, _, err = run(argv, capsys)
+    assert code == 0, err
+    field = load_field(out)
+    assert field.config["text_model"] == str(model.resolve())
+    recorded_config(field)  # the record is not a setting: the field can be rebuilt from itself
+
+
+@pytest.fixture(scope="module")
+def tiny_clip(tmp_path_factory) -> Path:
+    pytest.importorskip("transformers")
+    import tiny_models
+
+    return tiny_models.tiny_clip(tmp_path_factory.mktemp("models") / "my-clip")
+
+
+def _clip_field(small_field: Path, model: Path, out: Path) -> None:
+    """The small field as if built from features of the CLIP in ``model`` (16-D, preprocessed
+    with --space test/tiny-clip), which it records."""
+    from dataclasses import replace
+
+    import numpy as np
+
+    from thgs.field import load_field, save_field
+    from thgs.field_scene import record_text_model
+
+    field = load_field(small_field)
+    rng = np.random.default_rng(0)
+    features = []
+    for seen in field.seen:
+        rows = rng.normal(size=(len(seen), 16)).astype(np.float32)
+        rows /= np.linalg.norm(rows, axis=1, keepdims=True)
+        features.append(np.where(seen[:, None], rows, 0).astype(np.float32))
+    clip = replace(field, features=tuple(features), space="test/tiny-clip")
+    save_field(out, record_text_model(clip, model))
+
+
+def test_query_uses_the_text_model_the_field_records(
+    small_field, tiny_clip, tmp_path, monkeypatch, capsys
+):
+    monkeypatch.setenv("HF_HOME", str(tmp_path / "hf"))  # an empty cache: only the record helps
+    monkeypatch.setenv("HF_HUB_CACHE", str(tmp_path / "hf" / "hub"))
+    model = tmp_path / "clip"
+    shutil.copytree(tiny_clip, model)
+    field = tmp_path / "clip.thgs"
+    _clip_field(small_field, model, field)
+    code, out, err = run(["query", str(field), "mug", "--mode", "level"], capsys)
+    assert code == 0, err
+    assert "thgs query" in out and "mug" in out
+    moved = tmp_path / "moved"
+    model.rename(moved)
+    code, out, err = run(["query", str(field), "mug"], capsys)
+    err = " ".join(err.split())
+    assert code == 2 and out == ""
+    assert err == (
+        f"error: {field}: its features came from the text model in {model.resolve()}, which no "
+        "longer exists; pass the model's folder with --text-model DIR"
+    )
+    code, out, err = run(["query", str(field), "mug", "--text-model", str(moved)], capsys)
+    assert code == 0, err
+    assert "mug" in out
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["--top", "0"], "error: --top: must be ≥ 1, got 0"),
+        (
+            ["--mode", "threshold", "--threshold", "2"],
+            "error: --threshold: must be in [0, 1], got 2.0",
+        ),
+        (["--level", "5"], "error: --level: must be 1 sub-parts, 2 parts or 3 objects, got 5"),
+    ],
+)
+def test_query_names_bad_settings_by_their_flags(small_field, capsys, argv, message):
+    code, _, err = run(["query", str(small_field), "mug", *argv], capsys)
+    assert code == 2 and " ".join(err.split()) == message
+
+
+def test_help_speaks_flags(capsys):
+    helps = {}
+    for command in ("preprocess", "build", "query", "export", "view", "eval", "bench", "info"):
+        code, out, _ = run([command, "--help"], capsys)
+        assert code == 0
+        helps[command] = " ".join(out.split())
+        assert "{None}" not in helps[command], command
+    assert "[n, 512]" not in helps["preprocess"] and "[n, D] unit features" in helps["preprocess"]
+    for flag in ("--pred-iou-threshold", "--stability-threshold", "--min-region-area"):
+        assert flag in helps["preprocess"]
+    # one vocabulary of selection modes
+    for command in ("query", "export", "view"):
+        assert "--mode {auto,paper,level,threshold}" in helps[command], command

@@ -8,12 +8,19 @@ import torch
 
 from thgs import Cameras, InputError
 from thgs.guidance import (
+    EMBEDDING_FILE,
     ViewGuidance,
+    check_masks,
+    guidance_space,
     load_guidance,
+    read_embedding_model,
+    read_embedding_space,
     read_view_guidance,
     resample_segments,
+    write_embedding_space,
     write_view_guidance,
 )
+from thgs.text import LANGSPLAT_SPACE
 
 
 def langsplat_files(folder, stem, level_maps, features):
@@ -135,7 +142,9 @@ def test_load_guidance_matches_cameras(tmp_path):
     views = load_guidance(tmp_path, cameras_for(["a", "b"], 3, 2))
     assert [v.stem for v in views] == ["a", "b"]
     np.testing.assert_array_equal(views[0].features, features(8, seed=1))
-    with pytest.raises(InputError, match=r"masks are 3×2 but the camera is 6×4; pass resize=True"):
+    with pytest.raises(
+        InputError, match=r"masks are 3×2 but the camera is 6×4; resample them with --resize"
+    ):
         load_guidance(tmp_path, cameras_for(["a"], 6, 4))
     resized = load_guidance(tmp_path, cameras_for(["a"], 6, 4), resize=True)
     assert resized[0].segments.shape == (4, 4, 6)
@@ -144,3 +153,45 @@ def test_load_guidance_matches_cameras(tmp_path):
     langsplat_files(tmp_path, "d", example_levels(), features(8, d=5))
     with pytest.raises(InputError, match="feature dimension 5, other views have 6"):
         load_guidance(tmp_path, cameras_for(["a", "d"], 3, 2))
+
+
+def _views(dims_and_masks):
+    """One view per (D, has_masks): a 2 × 3 view with one mask everywhere, or none."""
+    views = []
+    for i, (dim, masked) in enumerate(dims_and_masks):
+        segments = np.full((4, 2, 3), 0 if masked else -1, dtype=np.int32)
+        rows = np.eye(1, dim, dtype=np.float32) if masked else np.zeros((0, dim), np.float32)
+        views.append(ViewGuidance(f"v{i}", segments, rows))
+    return views
+
+
+def test_embedding_file_must_agree_with_the_features(tmp_path):
+    write_embedding_space(tmp_path, "my/space", 6, model=tmp_path / "model" / ".." / "model")
+    assert read_embedding_space(tmp_path) == ("my/space", 6)
+    assert read_embedding_model(tmp_path) == (tmp_path / "model").resolve()
+    assert guidance_space(tmp_path, _views([(6, True)])) == "my/space"
+    path = tmp_path / EMBEDDING_FILE
+    with pytest.raises(
+        InputError,
+        match=rf"^{path}: records 6-D features of my/space but the "
+        r"folder's _f\.npy files hold 512-D features",
+    ):
+        guidance_space(tmp_path, _views([(512, True)]))
+    write_embedding_space(tmp_path, LANGSPLAT_SPACE, 16)
+    assert read_embedding_model(tmp_path) is None
+    with pytest.raises(
+        InputError, match=rf"records 16-D features of {LANGSPLAT_SPACE}, which is 512"
+    ):
+        guidance_space(tmp_path, _views([(16, True)]))
+    path.write_text('{"space": "x/y", "dim": 4, "model": 3}')
+    with pytest.raises(InputError, match="'model' must be a folder path, got 3"):
+        read_embedding_model(tmp_path)
+
+
+def test_guidance_without_any_mask_is_refused():
+    assert check_masks(_views([(4, True), (4, False), (4, True)]), "lf") == ["v1"]
+    with pytest.raises(InputError) as caught:
+        check_masks(_views([(4, False), (4, False)]), "scene/language_features")
+    message = str(caught.value)
+    assert message.startswith("scene/language_features: none of the 2 views has a mask")
+    assert "--pred-iou-threshold" in message and "--min-region-area" in message

@@ -98,7 +98,7 @@ def test_occluded_and_unseen_gaussians_get_no_label(method):
 def test_bad_guidance_is_refused(method):
     gaussians = surfels([[0.0, 0.0, 2.0]], [0.1], 0.9)
     small = ViewGuidance("view", np.zeros((4, 12, 16), np.int32), np.ones((1, 4), np.float32))
-    with pytest.raises(InputError, match="resize=True"):
+    with pytest.raises(InputError, match="--resize"):
         lift_view(gaussians, front_camera(), small, config=LiftConfig(method))
     with pytest.raises(InputError, match="one view per camera"):
         lift_views(gaussians, front_camera(), [], LiftConfig(method))

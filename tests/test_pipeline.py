@@ -186,7 +186,7 @@ def test_bad_scenes_and_guidance_are_named(plane):
     with pytest.raises(InputError, match=r"view_2.*feature rows"):
         partition_scene(scene, [*guidance[:2], broken, *guidance[3:]])
     coarse = replace(guidance[0], segments=guidance[0].segments[:, ::2, ::2])
-    with pytest.raises(InputError, match="resize=True"):
+    with pytest.raises(InputError, match="--resize"):
         partition_scene(scene, [coarse, *guidance[1:]])
 
 

@@ -576,3 +576,84 @@ def test_cli_names_missing_weights(tmp_path, monkeypatch, capsys):
     assert "hf download facebook/sam-vit-huge" in err
     code, _, err = _cli(["preprocess", str(tmp_path / "nowhere")], capsys)
     assert code == 2 and "image folder not found" in err
+
+
+def _label_images(root: Path, count: int = 2) -> None:
+    """Label images for :class:`ColourSegmenter`: a 20 × 16 object of two parts on background."""
+    folder = root / "images"
+    folder.mkdir(parents=True)
+    for i in range(count):
+        image = np.zeros((40, 56, 3), dtype=np.uint8)
+        image[10:26, 10 + i : 30 + i] = (1, 1, 1)
+        image[10:26, 20 + i : 30 + i, :2] = 2
+        Image.fromarray(image).save(folder / f"frame_{i:03d}.png")
+
+
+def test_cli_reaches_sams_thresholds_and_warns_without_masks(tmp_path, models, monkeypatch, capsys):
+    import thgs.guidance.preprocess as preprocess_module
+
+    monkeypatch.setattr(preprocess_module, "PointSegmenter", lambda *_, **__: ColourSegmenter())
+    _label_images(tmp_path)
+    argv = ["preprocess", str(tmp_path), "--clip", str(models["clip"]), "--points-per-side", "8"]
+    argv += ["--min-region-area", "0"]
+    code, out, err = _cli(argv, capsys)
+    assert code == 0, err
+    assert "warning" not in err and "without a mask" not in out
+    manifest = json.loads((tmp_path / "language_features" / MANIFEST_FILE).read_text())
+    assert manifest["config"]["masks"]["min_region_area"] == 0
+    # the stand-in's predicted IoU is 0.95: a stricter threshold keeps no mask at all
+    code, out, err = _cli([*argv, "--pred-iou-threshold", "0.96", "--overwrite"], capsys)
+    assert code == 0, err
+    assert "2 of 2 images without a mask (first: frame_000)" in " ".join(out.split())
+    assert err.startswith("warning: ")
+    assert "SAM kept no mask in 2 of 2 images (first: frame_000)" in err
+    assert "--pred-iou-threshold (now 0.96), --stability-threshold (now 0.85)" in err
+    views = [read_view_guidance(tmp_path / "language_features", f"frame_00{i}") for i in (0, 1)]
+    assert all(len(view.features) == 0 for view in views)
+
+
+@pytest.mark.parametrize(
+    ("flag", "value", "message"),
+    [
+        ("--pred-iou-threshold", "1.5", "must be in [0, 1], got 1.5"),
+        ("--stability-threshold", "-0.1", "must be in [0, 1], got -0.1"),
+        ("--min-region-area", "-1", "must be an integer ≥ 0, got -1"),
+        ("--points-per-side", "0", "must be an integer ≥ 1, got 0"),
+    ],
+)
+def test_cli_names_a_bad_threshold_by_its_flag(tmp_path, capsys, flag, value, message):
+    _image_folder(tmp_path, count=1)
+    code, _, err = _cli(["preprocess", str(tmp_path), flag, value], capsys)
+    assert code == 2 and err == f"error: {flag}: {message}"
+
+
+def test_mask_generator_config_names_the_setting():
+    with pytest.raises(InputError, match=r"^stability_threshold: must be in \[0, 1\], got 2"):
+        MaskGeneratorConfig(stability_threshold=2)
+    with pytest.raises(InputError, match=r"^crop_layers: must be an integer ≥ 0, got -1"):
+        MaskGeneratorConfig(crop_layers=-1)
+
+
+def test_a_clip_folder_records_its_own_space_and_itself(tmp_path, models, monkeypatch, capsys):
+    import thgs.guidance.preprocess as preprocess_module
+    from thgs.guidance import read_embedding_model
+
+    monkeypatch.setattr(preprocess_module, "PointSegmenter", lambda *_, **__: ColourSegmenter())
+    _label_images(tmp_path, count=1)
+    argv = ["preprocess", str(tmp_path), "--clip", str(models["clip"]), "--points-per-side", "4"]
+    code, out, err = _cli(argv, capsys)
+    assert code == 0, err
+    output = tmp_path / "language_features"
+    folder = str(models["clip"].resolve())
+    # a folder with no Hugging Face id is a space of its own, at its real dimension (16, not
+    # LangSplat's 512), and the features remember where the model is
+    assert read_embedding_space(output) == (folder, 16)
+    assert read_embedding_model(output) == models["clip"].resolve()
+    assert f"CLIP {folder} (16-D)" in " ".join(out.split())
+    # naming it LangSplat's space is refused: that model is 512-D
+    argv += ["--space", "laion/CLIP-ViT-B-16-laion2B-s34B-b88K", "-o", str(tmp_path / "other")]
+    code, _, err = _cli(argv, capsys)
+    assert code == 2
+    assert "projects to 16-D but laion/CLIP-ViT-B-16-laion2B-s34B-b88K is 512-D" in err
+    code, _, err = _cli(["preprocess", str(tmp_path), "--space", "my/space"], capsys)
+    assert code == 2 and "--space: names the space of a --clip folder" in err

@@ -32,6 +32,7 @@ from thgs.query import (
     select_auto,
     select_paper,
     small_region_size,
+    unselectable_reason,
 )
 from thgs.text import MINILM_SPACE, SpaceMismatchError
 
@@ -264,6 +265,49 @@ def test_queries_in_another_space_are_refused():
         FieldQuery(_field(), _encoder()).select([" "])
     with pytest.raises(InputError, match="list of texts"):
         FieldQuery(_field(), _encoder()).select("red")
+
+
+def test_queries_of_another_dimension_are_refused():
+    encoder = _encoder()
+    encoder.dim = 5
+    with pytest.raises(SpaceMismatchError, match=r"^f\.thgs: features are 3-D but the text model "):
+        FieldQuery(_field(), encoder, source="f.thgs")
+
+
+def _unseen(field: SemanticField) -> SemanticField:
+    """``field`` as if no view's masks had covered it: every feature zero, nothing seen."""
+    return replace(
+        field,
+        features=tuple(np.zeros_like(f) for f in field.features),
+        seen=tuple(np.zeros_like(s) for s in field.seen),
+    ).check()
+
+
+@pytest.mark.parametrize("mode", ["auto", "paper", "level", "threshold"])
+def test_a_field_without_features_says_why_nothing_is_selected(mode):
+    fq = FieldQuery(_unseen(_field()), _encoder(), QueryConfig(mode=mode))
+    selection = fq.select(["red"])[0]
+    assert selection.empty and not selection.gaussians.any()
+    assert selection.reason is not None
+    assert selection.reason.startswith("no region of level(s) ")
+    assert "no view's masks covered them" in selection.reason
+    # every seen region too small to be selected: that is said instead
+    small = FieldQuery(_field(), _encoder(), QueryConfig(mode=mode, min_gaussians=5))
+    assert "lower --min-gaussians" in small.select(["red"])[0].reason
+    assert (
+        FieldQuery(_field(), _encoder(), QueryConfig(mode=mode)).select(["red"])[0].reason is None
+    )
+
+
+def test_unselectable_reason_by_hand():
+    seen = {2: np.array([True, False]), 3: np.array([False])}
+    assert unselectable_reason(seen, {2: np.array([True, True]), 3: np.array([True])}) is None
+    too_small = unselectable_reason(seen, {2: np.array([False, True]), 3: np.array([True])})
+    assert too_small is not None and too_small.startswith("every region of level(s) 2, 3")
+    nothing = {2: np.zeros(2, bool), 3: np.zeros(1, bool)}
+    assert unselectable_reason(nothing, {2: np.ones(2, bool), 3: np.ones(1, bool)}).startswith(
+        "no region of level(s) 2, 3 has a feature"
+    )
 
 
 def test_default_thresholds():

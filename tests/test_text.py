@@ -10,13 +10,16 @@ import numpy as np
 import pytest
 import torch
 
-from thgs.errors import ThgsError
+from thgs.errors import InputError, ThgsError
 from thgs.text import (
+    LANGSPLAT_SPACE,
     MINILM_SPACE,
     CLIPTextEncoder,
     MiniLMEncoder,
     SpaceMismatchError,
     check_space,
+    clip_space,
+    known_dim,
     load_text_encoder,
 )
 
@@ -98,3 +101,56 @@ def test_space_check_names_both_spaces(tiny_clip):
     check_space(SPACE, encoder, "scene.thgs")
     with pytest.raises(SpaceMismatchError, match=r"scene.thgs: .*'other/space'.*'test/tiny-clip'"):
         check_space("other/space", encoder, "scene.thgs")
+
+
+def test_a_local_folder_that_is_no_hub_id_gets_no_download_hint(tmp_path, monkeypatch):
+    monkeypatch.setenv("HF_HOME", str(tmp_path / "hf"))
+    monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+    gone = str(tmp_path / "gone-clip")
+    with pytest.raises(ThgsError) as caught:
+        load_text_encoder(gone)
+    message = str(caught.value)
+    assert "not a Hugging Face model id" in message and "--text-model DIR" in message
+    assert "hf download" not in message
+
+
+def test_a_folder_of_another_dimension_is_not_a_known_space(tiny_clip):
+    with pytest.raises(
+        InputError, match=rf"gives 16-D text embeddings but {LANGSPLAT_SPACE} is 512"
+    ):
+        CLIPTextEncoder(LANGSPLAT_SPACE, tiny_clip)
+    assert (known_dim(LANGSPLAT_SPACE), known_dim(MINILM_SPACE), known_dim(SPACE)) == (
+        512,
+        384,
+        None,
+    )
+
+
+def test_space_check_compares_dimensions(tiny_clip):
+    encoder = CLIPTextEncoder(SPACE, tiny_clip)
+    check_space(SPACE, encoder, "scene.thgs", dim=16)
+    with pytest.raises(
+        SpaceMismatchError, match=r"scene.thgs: features are 512-D but the text model"
+    ):
+        check_space(SPACE, encoder, "scene.thgs", dim=512)
+
+
+def _clip_folder(folder: Path, config: dict) -> Path:
+    folder.mkdir(parents=True)
+    (folder / "config.json").write_text(json.dumps({"model_type": "clip", **config}))
+    return folder
+
+
+def test_clip_space_reads_the_folders_hugging_face_id(tmp_path):
+    snapshot = tmp_path / "hub" / "models--openai--clip-vit-base-patch16" / "snapshots" / "abc123"
+    assert clip_space(_clip_folder(snapshot, {})) == "openai/clip-vit-base-patch16"
+    saved = _clip_folder(tmp_path / "saved", {"_name_or_path": "openai/clip-vit-large-patch14"})
+    assert clip_space(saved) == "openai/clip-vit-large-patch14"
+    # hf download laion/CLIP-ViT-B-16-laion2B-s34B-b88K --local-dir CLIP-ViT-B-16-laion2B-s34B-b88K
+    local = _clip_folder(tmp_path / "models" / "CLIP-ViT-B-16-laion2B-s34B-b88K", {})
+    assert clip_space(local) == LANGSPLAT_SPACE
+    # a path in _name_or_path (a model saved from a folder) or none at all: the folder itself
+    own = _clip_folder(tmp_path / "finetuned", {"_name_or_path": "/data/runs/clip"})
+    assert clip_space(own) == str(own.resolve())
+    with pytest.raises(InputError, match=r"no config\.json"):
+        clip_space(tmp_path)

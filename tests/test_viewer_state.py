@@ -117,7 +117,7 @@ def test_click_pixels_and_viewport_sizes():
 @pytest.mark.parametrize(
     ("mode", "expected"),
     [
-        ("best", QueryConfig(mode="level", level=2, top=1)),
+        ("level", QueryConfig(mode="level", level=2, top=1)),
         ("threshold", QueryConfig(mode="threshold", level=2, threshold=0.6)),
         ("paper", QueryConfig(mode="paper")),
     ],
@@ -139,7 +139,7 @@ def test_a_query_highlights_what_the_query_api_selects(opened, mode, expected):
 def test_query_level_and_mode_changes_ask_again(state, opened):
     _, _, query = opened
     assert state.ask("mug").regions == query.select(["mug"], QueryConfig(mode="auto"))[0].regions
-    state.set_mode("best")
+    state.set_mode("level")
     state.set_level(2)
     expected = query.select(["mug"], QueryConfig(mode="level", level=2, top=1))[0]
     assert state.highlight.regions == expected.regions

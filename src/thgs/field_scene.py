@@ -5,6 +5,10 @@ PLYs also needs the Gaussians and the cameras. ``thgs build`` and ``thgs demo`` 
 loaded the scene in the field's config (key ``"scene"``: the absolute path and the loader's
 arguments); :func:`open_field_scene` reads the field, reloads that scene (or the one given) and
 checks that it is the same scene by its fingerprint.
+
+A field whose features came from a local model folder also records that folder (key
+``"text_model"``, :func:`record_text_model`), so that :func:`field_text_encoder` encodes queries
+with it without being told again.
 """
 
 from __future__ import annotations
@@ -21,8 +25,15 @@ from thgs.device import resolve_device
 from thgs.errors import InputError
 from thgs.field import SemanticField, load_field, scene_fingerprint
 from thgs.scene import Cameras, Scene, load_scene
+from thgs.text import TextEncoder, load_text_encoder
 
-__all__ = ["find_view", "open_field_scene", "record_scene"]
+__all__ = [
+    "field_text_encoder",
+    "find_view",
+    "open_field_scene",
+    "record_scene",
+    "record_text_model",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -136,3 +147,53 @@ def find_view(cameras: Cameras | None, name: str, source: str | os.PathLike[str]
             return i
     shown = ", ".join(cameras.stems[:8]) + (", …" if len(cameras) > 8 else "")
     raise InputError(source, f"no view named {name!r} (views: {shown})")
+
+
+def record_text_model(field: SemanticField, model: str | os.PathLike[str] | None) -> SemanticField:
+    """``field`` with the local folder of its features' model stored under
+    ``config["text_model"]`` as an absolute path (models stay where they are when fields are
+    moved); None stores nothing.
+
+    Raises:
+        InputError: ``model`` is not a folder.
+    """
+    if model is None:
+        return field
+    folder = Path(model).expanduser().resolve()
+    if not folder.is_dir():
+        raise InputError(folder, "text model folder not found")
+    return replace(field, config={**field.config, "text_model": str(folder)})
+
+
+def field_text_encoder(
+    field: SemanticField,
+    field_path: str | os.PathLike[str],
+    text_model: str | os.PathLike[str] | None = None,
+    *,
+    device: str = "cpu",
+) -> TextEncoder:
+    """The text encoder of a field's embedding space.
+
+    The model is read from ``text_model`` if given (``--text-model``), else from the folder the
+    field records (:func:`record_text_model`), else from the space's default location
+    (:func:`thgs.text.load_text_encoder`: the Hugging Face cache, or the MiniLM package).
+
+    Raises:
+        InputError: the recorded folder no longer exists (the message names ``--text-model``),
+            or the record is not a path.
+        ThgsError: the model cannot be loaded (:func:`thgs.text.load_text_encoder`).
+    """
+    if text_model is None:
+        recorded = field.config.get("text_model")
+        if recorded is not None:
+            if not isinstance(recorded, str) or not recorded.strip():
+                raise InputError(field_path, f"config.text_model is not a path: {recorded!r}")
+            if not Path(recorded).is_dir():
+                raise InputError(
+                    field_path,
+                    f"its features came from the text model in {recorded}, which no longer "
+                    "exists; pass the model's folder with --text-model DIR",
+                )
+            text_model = recorded
+    logger.info("text model for %s: %s", field_path, text_model or field.space)
+    return load_text_encoder(field.space, model_path=text_model, device=device)

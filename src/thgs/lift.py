@@ -327,7 +327,7 @@ def _segments(gaussians: Gaussians, camera: Cameras, guidance: ViewGuidance) -> 
         raise InputError(
             f"guidance {guidance.stem}",
             f"masks are {guidance.width}×{guidance.height} but the camera is {width}×{height}; "
-            "load it with load_guidance(..., resize=True) to resample",
+            "resample the masks with --resize (load_guidance(resize=True))",
         )
     return torch.from_numpy(guidance.segments.astype(np.int64)).to(gaussians.device)
 

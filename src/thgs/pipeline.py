@@ -34,7 +34,7 @@ from thgs.graph import (
     partition,
     reweight,
 )
-from thgs.guidance import ViewGuidance
+from thgs.guidance import ViewGuidance, check_masks
 from thgs.hierarchy import (
     MergeConfig,
     RegionLevels,
@@ -219,7 +219,7 @@ def _checked_inputs(
         raise InputError("scene", "has no Gaussians to partition")
     if cameras is None:
         raise InputError(
-            "scene", "has no cameras: load it with the training data (source=...) to lift masks"
+            "scene", "has no cameras to lift masks with: give the training data with --source"
         )
     if len(guidance) != len(cameras):
         raise InputError(
@@ -451,13 +451,16 @@ class FieldConfig:
 
 
 def recorded_config(field: SemanticField, source: str = "field") -> FieldConfig:
-    """The :class:`FieldConfig` a field was built with, from its record (the ``scene`` record
-    aside), so that it can be rebuilt or its settings read with their types.
+    """The :class:`FieldConfig` a field was built with, from its record (the ``scene`` and
+    ``text_model`` records aside), so that it can be rebuilt or its settings read with their
+    types.
 
     Raises:
         InputError: the record is not a valid FieldConfig (named by ``source`` and the key).
     """
-    document = {key: value for key, value in field.config.items() if key != "scene"}
+    document = {
+        key: value for key, value in field.config.items() if key not in ("scene", "text_model")
+    }
     return FieldConfig.from_json(document, f"{source}: config")
 
 
@@ -676,7 +679,8 @@ def build_field(
 
     Raises:
         InputError: the inputs :func:`partition_scene` refuses, no feature dimension in the
-            guidance, an empty ``space``, or ``config.merge.mode == "independent"``.
+            guidance, no mask in any view (:func:`thgs.guidance.check_masks`: no region could
+            get a feature), an empty ``space``, or ``config.merge.mode == "independent"``.
     """
     if config.merge.mode == "independent":
         raise InputError(
@@ -687,6 +691,7 @@ def build_field(
     if not isinstance(space, str) or not space.strip():
         raise InputError("space", "name the embedding space of the guidance features")
     _check_features(guidance)
+    check_masks(guidance, "guidance")
     lifted = lift_scene(scene, guidance, config.superpoints.lift, progress, cache=lift_cache)
     built = build_levels(lifted, guidance, config, progress=progress)
     timings = {"lift": lifted.seconds, **built.timings}

@@ -66,6 +66,7 @@ __all__ = [
     "select_auto",
     "select_paper",
     "small_region_size",
+    "unselectable_reason",
 ]
 
 logger = logging.getLogger(__name__)
@@ -218,7 +219,8 @@ class Selection:
             closest by cosine first); empty when nothing was relevant enough (auto and threshold
             modes).
         gaussians: [N] bool, True for the members of any selected region.
-        reason: why nothing was selected (auto mode abstaining), else None.
+        reason: why nothing was selected (auto mode abstaining; or, in every mode, no
+            selectable region has a feature: :func:`unselectable_reason`), else None.
         confidence: the calibrated probability that the scene holds what the text names
             (:func:`thgs.confidence.presence_confidence`, whatever the mode); None when it
             cannot be computed (:meth:`FieldQuery.null_model` is None) or was not
@@ -373,6 +375,33 @@ def abstain_reason(text: str, best: float, threshold: float) -> str:
     )
 
 
+def unselectable_reason(seen: dict[int, np.ndarray], allowed: dict[int, np.ndarray]) -> str | None:
+    """Why no query can select anything, or None when some region can be selected.
+
+    Args:
+        seen: level → [R_level] bool, the regions with a feature (any view saw them).
+        allowed: level → [R_level] bool, the regions large enough to be selected.
+
+    Returns:
+        None if some region is both; else the reason: no region of the searched levels has a
+        feature (the guidance had no masks where the field is), or every one that has is too
+        small.
+    """
+    levels = ", ".join(str(k) for k in seen)
+    if not any(bool(flags.any()) for flags in seen.values()):
+        return (
+            f"no region of level(s) {levels} has a feature: no view's masks covered them, so "
+            "no text can match; rebuild the field from guidance with masks (thgs preprocess, "
+            "thgs build)"
+        )
+    if not any(bool((seen[k] & allowed[k]).any()) for k in seen):
+        return (
+            f"every region of level(s) {levels} with a feature is smaller than the smallest "
+            "selectable region; lower --min-gaussians"
+        )
+    return None
+
+
 @dataclass(frozen=True, eq=False)
 class Regions:
     """What queries read of a segmentation: regions of N Gaussians at levels 1–3 with their
@@ -479,7 +508,7 @@ class FieldQuery:
         source: what to name in errors (e.g. the field's path).
 
     Raises:
-        SpaceMismatchError: the encoder's space is not the regions'.
+        SpaceMismatchError: the encoder's space or dimension is not the regions'.
     """
 
     def __init__(
@@ -494,6 +523,7 @@ class FieldQuery:
             regions = Regions.from_field(regions)
         check_space(regions.space, encoder, source)
         self.regions = regions.check(source)
+        check_space(regions.space, encoder, source, dim=self.regions.dim)
         self.encoder = encoder
         self.config = config.check()
         self.threshold = default_threshold(regions.space)
@@ -572,9 +602,14 @@ class FieldQuery:
             cosines = {k: self.similarity(todo, k) for k in (1, 2, 3)}
             presence, confidence = self._confidences(cosines, smallest)
             cut = config.threshold if config.threshold is not None else self.threshold
+            unselectable = unselectable_reason(
+                {k: self.regions.seen[k - 1] for k in config.searched_levels}, allowed
+            )
             for q, text in enumerate(todo):
                 reason = None
-                if config.mode == "auto":
+                if unselectable is not None:
+                    regions, reason = (), unselectable
+                elif config.mode == "auto":
                     choice = select_auto(
                         {k: s[q] for k, s in scores.items()},
                         {k: c[q] for k, c in cosines.items()},

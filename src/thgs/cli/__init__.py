@@ -6,7 +6,7 @@ import sys
 
 import tyro
 
-from thgs.cli._console import stderr
+from thgs.cli._console import error
 from thgs.cli.bench import bench
 from thgs.cli.build import build, demo
 from thgs.cli.evaluate import evaluate, evaluate_mean
@@ -54,7 +54,8 @@ def entrypoint(argv: list[str] | None = None) -> None:
             prog="thgs",
             description="thgs: open-vocabulary, hierarchical understanding of Gaussian scenes.",
             args=argv,
+            config=(tyro.conf.DisallowNone,),
         )
     except ThgsError as exc:
-        stderr.print(f"[bold red]error:[/] {exc}", highlight=False)
+        error(str(exc))
         sys.exit(2)

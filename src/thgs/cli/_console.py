@@ -3,20 +3,65 @@
 from __future__ import annotations
 
 import logging
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import ClassVar
 
 from rich.console import Console
-from rich.logging import RichHandler
+from rich.markup import escape
+
+from thgs.errors import InputError
 
 stdout = Console()
 stderr = Console(stderr=True)
+
+
+def warn(message: str) -> None:
+    """Print one ``warning:`` line on stderr."""
+    stderr.print("[yellow]warning:[/] " + escape(message), highlight=False)
+
+
+def error(message: str) -> None:
+    """Print one ``error:`` line on stderr."""
+    stderr.print("[bold red]error:[/] " + escape(message), highlight=False)
+
+
+@contextmanager
+def settings_as_flags(*names: str) -> Iterator[None]:
+    """Name a library setting the user gave as a flag by that flag: an :class:`InputError` about
+    ``QueryConfig.top`` or ``pred_iou_threshold`` (a name in ``names``) is raised again about
+    ``--top`` or ``--pred-iou-threshold``."""
+    try:
+        yield
+    except InputError as error:
+        setting = error.source.rpartition(".")[2]
+        if setting not in names:
+            raise
+        raise InputError("--" + setting.replace("_", "-"), error.problem) from error
+
+
+class _ConsoleHandler(logging.Handler):
+    """Log records on stderr as the CLI's own messages: ``error:`` and ``warning:`` lines, the
+    same spelling as the error that ends a command; other records (``--verbose``) as they are."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            message = self.format(record)
+            if record.levelno >= logging.ERROR:
+                error(message)
+            elif record.levelno >= logging.WARNING:
+                warn(message)
+            else:
+                stderr.print(escape(message), highlight=False)
+        except Exception:  # logging must never end the command
+            self.handleError(record)
 
 
 def setup_logging(verbose: bool) -> None:
     logging.basicConfig(
         level=logging.INFO if verbose else logging.WARNING,
         format="%(message)s",
-        handlers=[RichHandler(console=stderr, show_path=False, show_time=False)],
+        handlers=[_ConsoleHandler()],
         force=True,
     )
 

@@ -10,7 +10,7 @@ from typing import Annotated, Literal
 import tyro
 from rich.table import Table
 
-from thgs.cli._console import StageBars, setup_logging, stage_progress, stdout
+from thgs.cli._console import StageBars, setup_logging, stage_progress, stdout, warn
 from thgs.errors import InputError, ThgsError
 from thgs.scene import Scene, load_scene
 
@@ -58,6 +58,7 @@ def build(
     scale: float = 1.0,
     resize: bool = False,
     space: str | None = None,
+    text_model: Path | None = None,
     reference: bool = False,
     repeated_parts: bool = True,
     device: Literal["auto", "cpu", "cuda", "mps"] = "auto",
@@ -95,6 +96,9 @@ def build(
         space: embedding space of the mask features; default: language_features/embedding.json,
             else LangSplat's OpenCLIP ViT-B/16 (laion/CLIP-ViT-B-16-laion2B-s34B-b88K) for 512-D
             features.
+        text_model: the local folder of the features' model, recorded in the field so that
+            thgs query, view and eval find it; default: the --clip folder thgs preprocess
+            recorded in embedding.json (a model from the Hugging Face cache needs none).
         reference: the authors' behaviour where thgs differs (absolute vote offsets, reweighted
             edge-weight scale, every label voting in merging and in the features, one part per
             connected piece), to compare.
@@ -110,8 +114,16 @@ def build(
     """
     from thgs.device import resolve_device
     from thgs.field import save_field
-    from thgs.field_scene import record_scene
-    from thgs.guidance import guidance_folder, guidance_space, load_guidance
+    from thgs.field_scene import record_scene, record_text_model
+    from thgs.guidance import (
+        EMBEDDING_FILE,
+        check_masks,
+        guidance_folder,
+        guidance_space,
+        load_guidance,
+        read_embedding_model,
+        read_embedding_space,
+    )
     from thgs.pipeline import PRESETS, build_field, read_field_config
 
     setup_logging(verbose)
@@ -138,7 +150,25 @@ def build(
                 "with the training data folder that holds language_features/, or --guidance",
             )
     views = load_guidance(guidance, loaded.cameras, resize=resize)
-    space = space if space is not None else guidance_space(guidance, views)
+    check_masks(views, guidance)
+    recorded = read_embedding_space(guidance)
+    if space is not None and recorded is not None and recorded[0] != space:
+        raise InputError(
+            "--space",
+            f"{space!r}, but {guidance / EMBEDDING_FILE} records {recorded[0]!r}; leave "
+            "--space out, or correct the file if it is wrong",
+        )
+    if space is None or recorded is not None:
+        space = guidance_space(guidance, views)  # checks the file against the features
+    if text_model is not None and not text_model.is_dir():
+        raise InputError("--text-model", f"{text_model} is not a folder")
+    model = text_model if text_model is not None else read_embedding_model(guidance)
+    if model is not None and not model.is_dir():
+        warn(
+            f"{guidance / EMBEDDING_FILE} names the model folder {model}, which does not exist: "
+            "the field will not remember its text model (--text-model DIR records one)"
+        )
+        model = None
     with stage_progress() as bar:
         field = build_field(
             loaded.to(resolve_device(device)),
@@ -157,6 +187,7 @@ def build(
         scale=scale,
         field_path=out,
     )
+    field = record_text_model(field, model)
     save_field(out, field)
     stdout.print(_counts_table(f"thgs build {scene}", field.region_counts, field.timings))
     stdout.print(f"wrote {out} ({out.stat().st_size / 1e6:.1f} MB, space {space})")

@@ -62,7 +62,8 @@ def evaluate(
         scannet_level: the field level whose features classify ScanNet points (3: objects).
         out: the JSON report (default: <field>.eval.json); the table goes to the same name .md.
         scene: the scene the field was built on, if not where the field says.
-        text_model: a local folder with the text model, instead of the default location.
+        text_model: the text model's local folder, instead of the one the field records (or,
+            for a field that records none, the Hugging Face cache).
         device: where to render: auto (a CUDA GPU if torch sees one, else MPS, else the CPU),
             cpu, cuda or mps (docs/rendering.md).
         verbose: log what is loaded and how long it takes.
@@ -71,10 +72,9 @@ def evaluate(
     from thgs.eval.dataset import evaluate_dataset, find_ground_truth
     from thgs.eval.protocols import get_protocol, sources
     from thgs.export import write_json
-    from thgs.field_scene import open_field_scene
+    from thgs.field_scene import field_text_encoder, open_field_scene
     from thgs.pipeline import lifted_raster
     from thgs.query import FieldQuery
-    from thgs.text import load_text_encoder
 
     setup_logging(verbose)
     for name in protocol:
@@ -90,7 +90,7 @@ def evaluate(
             "--segmentations or --scannet",
         )
     semantic, loaded = open_field_scene(field, scene, device=device)
-    encoder = load_text_encoder(semantic.space, model_path=text_model)
+    encoder = field_text_encoder(semantic, field, text_model)
     engine = FieldQuery(semantic, encoder, source=str(field))
     with stage_progress() as bar:
         report = evaluate_dataset(

@@ -7,7 +7,7 @@ from typing import Annotated, Literal
 
 import tyro
 
-from thgs.cli._console import setup_logging, stderr, stdout
+from thgs.cli._console import settings_as_flags, setup_logging, stderr, stdout
 from thgs.errors import InputError
 from thgs.text import LANGSPLAT_SPACE
 
@@ -36,6 +36,9 @@ def preprocess(
     points_per_side: int = 32,
     points_per_batch: int = 64,
     crop_layers: int = 1,
+    pred_iou_threshold: float = 0.7,
+    stability_threshold: float = 0.85,
+    min_region_area: int = 100,
     resolution: int | None = None,
     cameras: Path | None = None,
     overwrite: bool = False,
@@ -44,8 +47,11 @@ def preprocess(
     """Make a scene's 2D guidance: SAM masks at levels default/s/m/l and a CLIP feature per mask.
 
     Writes language_features/<stem>_s.npy ([4, H, W] mask ids, −1 = none) and <stem>_f.npy
-    ([n, 512] unit features), LangSplat's layout. Each view is written atomically; run the same
-    command again after an interruption and finished views are skipped.
+    ([n, D] unit features, D the CLIP model's projection size: 512 for LangSplat's ViT-B/16),
+    LangSplat's layout, and embedding.json (the features' space, D and the local --clip
+    folder, which thgs build records in the field). Each view is written atomically; run the
+    same command again after an interruption and finished views are skipped. A warning ends the
+    run when SAM kept no mask in most images.
 
     Args:
         source: the dataset folder holding the images (SOURCE/images by default).
@@ -54,13 +60,21 @@ def preprocess(
         sam: SAM or SAM 2 in Hugging Face format: a local folder, or a model id read from the
             Hugging Face cache (never downloaded).
         clip: the CLIP model, likewise (a local folder or a model id).
-        space: the features' embedding space when --clip is a folder (default: LangSplat's
-            laion/CLIP-ViT-B-16-laion2B-s34B-b88K); queries must use the same model.
+        space: the features' embedding space when --clip is a folder; default: the folder's
+            Hugging Face id (from the cache's folder name, its config.json or a folder named
+            like LangSplat's model), else the folder's absolute path. Queries use the same
+            model: the field remembers the folder.
         device: torch device, e.g. cuda.
         dtype: model precision (bfloat16 or float16 on a GPU).
         points_per_side: SAM's prompt grid per crop side.
         points_per_batch: prompts decoded together (GPU memory).
         crop_layers: SAM's crop layers after the whole image (LangSplat: 1).
+        pred_iou_threshold: keep masks whose predicted IoU is above this, in [0, 1] (SAM's
+            pred_iou_thresh); lower keeps more masks.
+        stability_threshold: keep masks whose stability score is at least this, in [0, 1]
+            (SAM's stability_score_thresh); lower keeps more masks.
+        min_region_area: holes and islands under this many pixels are removed from each mask
+            (SAM's min_mask_region_area; 0 keeps them); masks left empty are dropped.
         resolution: output width in pixels, height scaled to match (LangSplat's --resolution);
             default: images taller than 1080 px are scaled to 1080 px tall.
         cameras: make each view's masks at its camera's size (a camera file, or a folder with
@@ -89,19 +103,21 @@ def preprocess(
         stdout.print(f"cameras: {camera_path} ({len(camera_set)} views)")
     jobs = image_jobs(source / images, cameras=camera_set, target_width=resolution)
     output = out if out is not None else source / "language_features"
-    try:
-        config = PreprocessConfig(
-            masks=MaskGeneratorConfig(
-                points_per_side=points_per_side,
-                points_per_batch=points_per_batch,
-                crop_layers=crop_layers,
-            )
-        )
-    except ValueError as error:
-        raise InputError("options", str(error)) from error
+    masks = {
+        "points_per_side": points_per_side,
+        "points_per_batch": points_per_batch,
+        "crop_layers": crop_layers,
+        "pred_iou_threshold": pred_iou_threshold,
+        "stability_threshold": stability_threshold,
+        "min_region_area": min_region_area,
+    }
+    with settings_as_flags(*masks):
+        config = PreprocessConfig(masks=MaskGeneratorConfig(**masks))
     torch_dtype = getattr(torch, dtype)
     clip_path = _local_folder(clip)
-    clip_space = clip if clip_path is None else (space or LANGSPLAT_SPACE)
+    if clip_path is None and space is not None and space != clip:
+        raise InputError("--space", f"names the space of a --clip folder; {clip!r} is a model id")
+    clip_space = clip if clip_path is None else space
     segmenter = PointSegmenter(sam, _local_folder(sam), device=device, dtype=torch_dtype)
     encoder = CLIPImageEncoder(clip_space, clip_path, device=device, dtype=torch_dtype)
     stdout.print(
@@ -137,4 +153,9 @@ def preprocess(
         f"done {len(summary.done)}, skipped {len(summary.skipped)} finished{timing}; "
         "masks per level (default/s/m/l): " + " / ".join(f"{n:,}" for n in summary.masks)
     )
+    if summary.empty:
+        stdout.print(
+            f"{len(summary.empty)} of {len(summary.done)} images without a mask (first: "
+            f"{summary.empty[0]})"
+        )
     stdout.print(f"wrote {output}")

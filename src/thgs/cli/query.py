@@ -8,7 +8,7 @@ from typing import Annotated, Literal
 import tyro
 from rich.table import Table
 
-from thgs.cli._console import setup_logging, stdout
+from thgs.cli._console import settings_as_flags, setup_logging, stdout
 from thgs.errors import InputError, ThgsError
 
 __all__ = ["export", "pick", "query"]
@@ -26,25 +26,28 @@ def _query_config(
 ):
     from thgs.query import QueryConfig
 
+    if level is not None and level not in (1, 2, 3):
+        raise InputError("--level", f"must be 1 sub-parts, 2 parts or 3 objects, got {level}")
     if mode is None:
         mode = "auto" if level is None else "level"
     if mode in ("auto", "paper") and level is not None:
         searched = "levels 1–3" if mode == "auto" else "levels 2 and 3"
         raise InputError("--level", f"the {mode} mode searches {searched}; use --mode level")
-    return QueryConfig(
-        mode=mode,
-        level=3 if level is None else level,
-        top=top,
-        threshold=threshold,
-        min_gaussians=min_gaussians,
-    ).check()
+    with settings_as_flags("level", "top", "threshold", "min_gaussians"):
+        return QueryConfig(
+            mode=mode,
+            level=3 if level is None else level,
+            top=top,
+            threshold=threshold,
+            min_gaussians=min_gaussians,
+        ).check()
 
 
 def _field_query(field_path: Path, field, text_model: Path | None, config):
+    from thgs.field_scene import field_text_encoder
     from thgs.query import FieldQuery
-    from thgs.text import load_text_encoder
 
-    encoder = load_text_encoder(field.space, model_path=text_model)
+    encoder = field_text_encoder(field, field_path, text_model)
     return FieldQuery(field, encoder, config, source=str(field_path))
 
 
@@ -111,7 +114,8 @@ def query(
         relevancy: also write per-pixel relevancy maps (<view>-relevancy-<level>.png, 0–255).
         mask_threshold: rendered opacity above which a pixel is in the mask.
         scene: the scene the field was built on, if not where the field says.
-        text_model: a local folder with the text model, instead of the default location.
+        text_model: the text model's local folder, instead of the one the field records (or,
+            for a field that records none, the Hugging Face cache).
         device: where to render: auto (a CUDA GPU if torch sees one, else MPS, else the CPU),
             cpu, cuda or mps (docs/rendering.md).
         verbose: log what is loaded and how long it takes.
@@ -264,7 +268,8 @@ def export(
         labels: write labels.npy (int32 [N, 4], levels 0–3) and labels.json.
         seed: of the region colours.
         scene: the scene the field was built on, if not where the field says.
-        text_model: a local folder with the text model, instead of the default location.
+        text_model: the text model's local folder, instead of the one the field records (or,
+            for a field that records none, the Hugging Face cache).
         verbose: log what is loaded.
     """
     from thgs.export import write_labels, write_region_ply

@@ -8,7 +8,7 @@ from typing import Annotated, Literal
 
 import tyro
 
-from thgs.cli._console import setup_logging, stdout
+from thgs.cli._console import settings_as_flags, setup_logging, stdout
 
 __all__ = ["view"]
 
@@ -21,7 +21,7 @@ def view(
     port: int = 8080,
     scene: Path | None = None,
     level: Literal[1, 2, 3] = 3,
-    mode: Literal["auto", "best", "threshold", "paper"] = "auto",
+    mode: Literal["auto", "paper", "level", "threshold"] = "auto",
     threshold: float | None = None,
     text_model: Path | None = None,
     device: Literal["auto", "cpu", "cuda", "mps"] = "auto",
@@ -42,11 +42,13 @@ def view(
         port: the port; the next free one if it is taken.
         scene: the scene the field was built on, if not where the field says.
         level: the level shown first: 1 sub-parts, 2 parts, 3 objects.
-        mode: how a query selects: auto (every region named like the query, at any level, or
-            nothing: thgs query's default), best (the best region of the level), threshold
-            (every region of the level above --threshold) or paper (top 3 of parts and objects).
+        mode: how a query selects, as thgs query --mode: auto (every region named like the
+            query, at any level, or nothing), paper (top 3 of parts and objects), level (the
+            best region of the level shown) or threshold (every region of the level above
+            --threshold).
         threshold: relevancy for the threshold mode (default: the embedding space's).
-        text_model: a local folder with the text model, instead of the default location.
+        text_model: the text model's local folder, instead of the one the field records (or,
+            for a field that records none, the Hugging Face cache).
         device: where to render: auto (a CUDA GPU if torch sees one, else MPS, else the CPU),
             cpu, cuda or mps (docs/rendering.md).
         verbose: log what is loaded and every action.
@@ -55,7 +57,8 @@ def view(
     from thgs.viewer.state import ViewerConfig
 
     setup_logging(verbose)
-    config = ViewerConfig(level=level, mode=mode, threshold=threshold).check()
+    with settings_as_flags("level", "mode", "threshold"):
+        config = ViewerConfig(level=level, mode=mode, threshold=threshold).check()
     app = start_viewer(
         field,
         scene=scene,

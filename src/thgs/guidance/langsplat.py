@@ -9,9 +9,11 @@ Mask ids are global row indices into ``_f.npy``, offset level after level: the `
 take rows ``0 … n_default−1``, the ``s`` masks the next ``n_s`` rows, and so on. This is what
 LangSplat writes and what THGS, OpenGaussian, Occam's LGS and Dr. Splat read.
 
-thgs adds one file LangSplat lacks, ``embedding.json`` ({"space": ..., "dim": D}), naming the
+thgs adds one file LangSplat lacks, ``embedding.json`` ({"space": ..., "dim": D}, and "model":
+the absolute path of the local CLIP folder the features were made with, if any), naming the
 embedding space of the features (e.g. ``laion/CLIP-ViT-B-16-laion2B-s34B-b88K``) so that nothing
-compares features and queries from different models. Folders without it are taken as they are.
+compares features and queries from different models; a field built from the folder remembers the
+model, so queries find it. Folders without the file are taken as they are.
 """
 
 from __future__ import annotations
@@ -30,13 +32,15 @@ from thgs._json import load_json
 from thgs.errors import InputError
 from thgs.scene import Cameras
 from thgs.scene.distortion import undistort_labels
-from thgs.text import LANGSPLAT_SPACE
+from thgs.text import LANGSPLAT_SPACE, known_dim
 
 __all__ = [
     "EMBEDDING_FILE",
     "LEVELS",
     "ViewGuidance",
+    "check_masks",
     "load_guidance",
+    "read_embedding_model",
     "read_embedding_space",
     "read_view_guidance",
     "resample_segments",
@@ -175,11 +179,39 @@ EMBEDDING_FILE = "embedding.json"
 """The file in a ``language_features`` folder that names the features' embedding space."""
 
 
-def write_embedding_space(folder: str | os.PathLike[str], space: str, dim: int) -> None:
-    """Record that the features in ``folder`` are ``dim``-D vectors of embedding space ``space``."""
+def write_embedding_space(
+    folder: str | os.PathLike[str],
+    space: str,
+    dim: int,
+    *,
+    model: str | os.PathLike[str] | None = None,
+) -> None:
+    """Record that the features in ``folder`` are ``dim``-D vectors of embedding space ``space``,
+    made with the local model folder ``model`` (stored absolute) if given."""
+    document: dict[str, object] = {"space": space, "dim": int(dim)}
+    if model is not None:
+        document["model"] = str(Path(model).expanduser().resolve())
     with atomic_output(Path(folder) / EMBEDDING_FILE, "w") as handle:
-        json.dump({"space": space, "dim": int(dim)}, handle, indent=2)
+        json.dump(document, handle, indent=2)
         handle.write("\n")
+
+
+def _embedding_document(folder: str | os.PathLike[str]) -> tuple[Path, dict | None]:
+    path = Path(folder) / EMBEDDING_FILE
+    if not path.is_file():
+        return path, None
+    document = load_json(path)
+    if not isinstance(document, dict) or not isinstance(document.get("space"), str):
+        raise InputError(path, 'expected {"space": <name>, "dim": <int>}')
+    if not document["space"].strip():
+        raise InputError(path, "'space' is empty")
+    dim = document.get("dim")
+    if isinstance(dim, bool) or not isinstance(dim, int) or dim < 1:
+        raise InputError(path, f"'dim' must be a positive integer, got {dim!r}")
+    model = document.get("model")
+    if model is not None and (not isinstance(model, str) or not model.strip()):
+        raise InputError(path, f"'model' must be a folder path, got {model!r}")
+    return path, document
 
 
 def read_embedding_space(folder: str | os.PathLike[str]) -> tuple[str, int] | None:
@@ -188,16 +220,23 @@ def read_embedding_space(folder: str | os.PathLike[str]) -> tuple[str, int] | No
     Raises:
         InputError: the file exists but is malformed.
     """
-    path = Path(folder) / EMBEDDING_FILE
-    if not path.is_file():
+    _, document = _embedding_document(folder)
+    if document is None:
         return None
-    document = load_json(path)
-    if not isinstance(document, dict) or not isinstance(document.get("space"), str):
-        raise InputError(path, 'expected {"space": <name>, "dim": <int>}')
-    dim = document.get("dim")
-    if not isinstance(dim, int) or dim < 1:
-        raise InputError(path, f"'dim' must be a positive integer, got {dim!r}")
-    return document["space"], dim
+    return document["space"], document["dim"]
+
+
+def read_embedding_model(folder: str | os.PathLike[str]) -> Path | None:
+    """The local model folder the features in ``folder`` were made with (``embedding.json``'s
+    ``model``), or None where it records none (a Hugging Face id from the cache, or no file).
+
+    Raises:
+        InputError: the file exists but is malformed.
+    """
+    _, document = _embedding_document(folder)
+    if document is None or document.get("model") is None:
+        return None
+    return Path(document["model"])
 
 
 def guidance_folder(
@@ -217,17 +256,60 @@ def guidance_space(folder: str | os.PathLike[str], views: Sequence[ViewGuidance]
 
     Raises:
         InputError: no ``embedding.json`` and features that are not 512-D (their space cannot
-            be guessed), or a malformed ``embedding.json``.
+            be guessed); a malformed ``embedding.json``, or one whose dimension is not the
+            features' (or not its space's, for a space thgs knows).
     """
-    recorded = read_embedding_space(folder)
-    if recorded is not None:
-        return recorded[0]
+    path, document = _embedding_document(folder)
     dim = int(views[0].features.shape[1]) if views else 0
+    if document is not None:
+        space, recorded = document["space"], document["dim"]
+        expected = known_dim(space)
+        if expected is not None and recorded != expected:
+            raise InputError(
+                path, f"records {recorded}-D features of {space}, which is {expected}-D"
+            )
+        if views and recorded != dim:
+            raise InputError(
+                path,
+                f"records {recorded}-D features of {space} but the folder's _f.npy files "
+                f"hold {dim}-D features: it belongs to other features; correct or delete it "
+                "(thgs build --space then names their space)",
+            )
+        return space
     if dim == 512:
         return LANGSPLAT_SPACE
     raise InputError(
         folder, f"{dim}-D features and no {EMBEDDING_FILE}; name their space (thgs build --space)"
     )
+
+
+def check_masks(views: Sequence[ViewGuidance], source: str | os.PathLike[str]) -> list[str]:
+    """Refuse guidance without a single mask; name the views without masks.
+
+    A field takes its regions' features from masks, so guidance with no mask in any view cannot
+    give one (SAM's score thresholds were too strict for these images, or the masks were made
+    for other images).
+
+    Args:
+        views: the views' guidance.
+        source: the guidance folder (or its name), for the message.
+
+    Returns:
+        the stems of the views with no mask at any level, in view order.
+
+    Raises:
+        InputError: no view has a mask (the message names ``source`` and the
+            ``thgs preprocess`` thresholds to lower).
+    """
+    empty = [view.stem for view in views if not (view.segments >= 0).any()]
+    if views and len(empty) == len(views):
+        raise InputError(
+            source,
+            f"none of the {len(views)} views has a mask, so no region can get a feature; make "
+            "the masks again with lower SAM thresholds (thgs preprocess --pred-iou-threshold, "
+            "--stability-threshold, --min-region-area) or check that they belong to these images",
+        )
+    return empty
 
 
 def resample_segments(segments: np.ndarray, height: int, width: int) -> np.ndarray:
@@ -307,7 +389,9 @@ def load_guidance(
                 raise InputError(
                     folder / f"{stem}_s.npy",
                     f"masks are {view.width}×{view.height} but the camera is {width}×{height}; "
-                    "pass resize=True to resample them (nearest neighbour)",
+                    "resample them with --resize (load_guidance(resize=True); nearest "
+                    "neighbour), or make the masks at the cameras' size (thgs preprocess "
+                    "--cameras)",
                 )
             view = ViewGuidance(
                 stem, resample_segments(view.segments, height, width), view.features

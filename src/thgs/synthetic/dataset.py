@@ -209,7 +209,7 @@ def write_dataset(
     if out.exists() and not out.is_dir():
         raise InputError(out, "exists and is not a folder")
     if out.is_dir() and any(out.iterdir()) and not overwrite:
-        raise InputError(out, "already exists and is not empty (pass overwrite to replace it)")
+        raise InputError(out, "already exists and is not empty (replace it with --overwrite)")
     with atomic_folder(out, replace=True) as staging:
         summary = _write(staging, scene, encoder, oracle, config, progress)
     summary = replace(summary, path=out)

@@ -21,11 +21,10 @@ import numpy as np
 
 from thgs.device import resolve_device
 from thgs.errors import ThgsError
-from thgs.field_scene import open_field_scene
+from thgs.field_scene import field_text_encoder, open_field_scene
 from thgs.hierarchy.levels import LEVEL_NAMES
 from thgs.query import FieldQuery, default_threshold
 from thgs.scene import Scene
-from thgs.text import load_text_encoder
 from thgs.viewer.camera import camera_pose, click_pixel, viewport_camera, viewport_size
 from thgs.viewer.splats import SplatChunks, hierarchy_order, splat_covariances
 from thgs.viewer.state import COLOR_MODES, QUERY_MODES, Highlight, ViewerConfig, ViewerState
@@ -48,7 +47,8 @@ class ViewerApp:
         server: a started ``viser.ViserServer``.
         config: the viewer's settings.
         scene: the scene to use instead of the one each field records.
-        text_model: a local folder with the text model (instead of the Hugging Face cache).
+        text_model: the text model's local folder, instead of the one each field records
+            (:func:`thgs.field_scene.field_text_encoder`).
         device: where the scene's Gaussians are rendered (:func:`thgs.device.resolve_device`).
     """
 
@@ -170,7 +170,7 @@ class ViewerApp:
             field, scene = open_field_scene(field_path, self.scene_path, device=self.device)
             query, self.text_off = None, None
             try:
-                encoder = load_text_encoder(field.space, model_path=self.text_model)
+                encoder = field_text_encoder(field, field_path, self.text_model)
                 query = FieldQuery(field, encoder, source=str(field_path))
             except ThgsError as error:
                 self.text_off = f"text queries are off: {error}"

@@ -51,17 +51,17 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
-QueryMode = Literal["auto", "best", "threshold", "paper"]
+QueryMode = Literal["auto", "paper", "level", "threshold"]
 ColorMode = Literal["scene", "regions", "relevancy"]
 
 QUERY_MODES: dict[str, str] = {
     "auto": "every region named like the query, at any level, or nothing",
-    "best": "the best region of the level",
-    "threshold": "every region of the level above the threshold",
     "paper": "the paper's: top 3 of parts and objects",
+    "level": "the best region of the level",
+    "threshold": "every region of the level above the threshold",
 }
-"""The viewer's query modes and what each selects (:class:`thgs.query.QueryConfig` modes
-``level`` with ``top=1``, ``threshold`` and ``reference``)."""
+"""The viewer's query modes and what each selects: :class:`thgs.query.QueryConfig`'s modes of
+the same names (``thgs query --mode``), ``level`` with ``top=1``."""
 
 COLOR_MODES: dict[str, str] = {
     "scene": "the scene's colours",

@@ -34,13 +34,14 @@ from __future__ import annotations
 
 import logging
 import os
+from pathlib import Path
 
 import numpy as np
 import torch
 
 from thgs._hf import load_local_model
 from thgs.errors import InputError, ThgsError
-from thgs.text import LANGSPLAT_SPACE
+from thgs.text import LANGSPLAT_SPACE, clip_space, known_dim
 
 __all__ = [
     "CLIP_MEAN",
@@ -212,18 +213,21 @@ class CLIPImageEncoder:
     :class:`thgs.text.CLIPTextEncoder`: a local folder or the Hugging Face cache, never a download.
 
     Args:
-        space: the embedding space, i.e. the Hugging Face model id (default
-            :data:`thgs.text.LANGSPLAT_SPACE`). Without ``model_path`` the weights are read from
-            the Hugging Face cache (``$HF_HOME``, default ``~/.cache/huggingface``); nothing is
-            ever downloaded.
-        model_path: a local folder holding that model in Hugging Face format (``config.json``,
+        space: the embedding space, i.e. the Hugging Face model id. Without ``model_path`` the
+            weights are read from the Hugging Face cache (``$HF_HOME``, default
+            ``~/.cache/huggingface``; nothing is ever downloaded) and the default is
+            :data:`thgs.text.LANGSPLAT_SPACE`; with it, the default is the folder's own space
+            (:func:`thgs.text.clip_space`: its Hugging Face id where that can be told, else the
+            folder's absolute path).
+        model_path: a local folder holding the model in Hugging Face format (``config.json``,
             weights), instead of the cache.
         device: torch device for the model.
         dtype: the model's dtype, e.g. ``torch.float16`` on CUDA (the reference runs CLIP in
             float16); default the stored one. Features are returned as float32 either way.
 
     Attributes:
-        space: the embedding space (model id).
+        space: the embedding space (model id, or a local folder's absolute path).
+        model_path: the local folder the model was read from (absolute), or None (the cache).
         dim: D, the projection dimension (512 for ViT-B/16).
         image_size: the model's input side in pixels (224 for ViT-B/16).
         device: the model's torch device.
@@ -231,11 +235,13 @@ class CLIPImageEncoder:
     Raises:
         ThgsError: transformers is missing, or the weights are not found (the message names the
             model to download and where to put it).
+        InputError: the model's projection dimension is not the one of ``space`` where thgs
+            knows it (:func:`thgs.text.known_dim`).
     """
 
     def __init__(
         self,
-        space: str = LANGSPLAT_SPACE,
+        space: str | None = None,
         model_path: str | os.PathLike[str] | None = None,
         device: str | torch.device = "cpu",
         dtype: torch.dtype | None = None,
@@ -246,7 +252,10 @@ class CLIPImageEncoder:
             raise ThgsError(
                 "the CLIP image encoder needs transformers: pip install 'thgs[models]'"
             ) from error
+        if space is None:
+            space = LANGSPLAT_SPACE if model_path is None else clip_space(model_path)
         self.space = space
+        self.model_path = None if model_path is None else Path(model_path).expanduser().resolve()
         self._model, source = load_local_model(
             lambda source: (
                 CLIPModel.from_pretrained(source, local_files_only=True).to(device).eval()
@@ -254,12 +263,19 @@ class CLIPImageEncoder:
             space,
             model_path,
             what="CLIP",
-            hint="model_path",
+            hint="--clip DIR",
         )
         if dtype is not None:
             self._model.to(dtype)
         self.device = torch.device(device)
         self.dim = int(self._model.config.projection_dim)
+        expected = known_dim(space)
+        if expected is not None and self.dim != expected:
+            raise InputError(
+                source,
+                f"projects to {self.dim}-D but {space} is {expected}-D: not that model; name the "
+                "features' space with --space, or leave it out to use the folder's own",
+            )
         self.image_size = int(self._model.config.vision_config.image_size)
         self._dtype = next(self._model.parameters()).dtype
         self._mean = torch.tensor(CLIP_MEAN, device=self.device).reshape(1, 3, 1, 1)

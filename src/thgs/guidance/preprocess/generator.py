@@ -35,6 +35,7 @@ from itertools import product
 import numpy as np
 import torch
 
+from thgs.errors import InputError
 from thgs.guidance.langsplat import LEVELS
 from thgs.guidance.preprocess.masks import (
     box_nms,
@@ -62,11 +63,17 @@ logger = logging.getLogger(__name__)
 class MaskGeneratorConfig:
     """Settings of multi-level mask generation; the defaults are LangSplat's.
 
+    Lower ``pred_iou_threshold``, ``stability_threshold`` or ``min_region_area`` keep more
+    masks (SAM's ``pred_iou_thresh``, ``stability_score_thresh`` and ``min_mask_region_area``;
+    ``thgs preprocess --pred-iou-threshold``, ``--stability-threshold``, ``--min-region-area``).
+
     Attributes:
         points_per_side: prompts per crop side (the grid has this many squared points).
         points_per_batch: prompts decoded together (memory: 3 × this many masks at crop size).
-        pred_iou_threshold: keep masks whose predicted IoU is above this (0 disables).
-        stability_threshold: keep masks whose stability score is at least this (0 disables).
+        pred_iou_threshold: keep masks whose predicted IoU is above this, in [0, 1] (0
+            disables).
+        stability_threshold: keep masks whose stability score is at least this, in [0, 1] (0
+            disables).
         stability_offset: the logit offset of the stability score.
         mask_threshold: a pixel is in a mask where its logit is above this.
         box_nms_threshold: box IoU above which the lower-scored of two masks is dropped, within a
@@ -97,10 +104,29 @@ class MaskGeneratorConfig:
     nms_containment_threshold: float = 0.5
 
     def __post_init__(self) -> None:
-        if self.points_per_side < 1 or self.points_per_batch < 1:
-            raise ValueError("points_per_side and points_per_batch must be positive")
-        if self.crop_layers < 0 or self.crop_points_downscale < 1:
-            raise ValueError("crop_layers must be ≥ 0 and crop_points_downscale ≥ 1")
+        """Raise :class:`InputError` naming the first invalid setting (its field name)."""
+        for name, least in (
+            ("points_per_side", 1),
+            ("points_per_batch", 1),
+            ("crop_layers", 0),
+            ("crop_points_downscale", 1),
+            ("min_region_area", 0),
+        ):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < least:
+                raise InputError(name, f"must be an integer ≥ {least}, got {value!r}")
+        for name in (
+            "pred_iou_threshold",
+            "stability_threshold",
+            "box_nms_threshold",
+            "crop_nms_threshold",
+            "nms_iou_threshold",
+            "nms_score_threshold",
+            "nms_containment_threshold",
+        ):
+            value = getattr(self, name)
+            if not 0.0 <= value <= 1.0:
+                raise InputError(name, f"must be in [0, 1], got {value!r}")
 
 
 @dataclass(frozen=True, eq=False)

@@ -104,11 +104,14 @@ class PreprocessSummary:
         skipped: stems already finished by an earlier run.
         masks: masks with at least one pixel in the id map, per level (``LEVELS`` order),
             summed over the images done.
+        empty: stems of the images done whose masks are empty at every level (SAM kept no
+            mask: its thresholds, :class:`MaskGeneratorConfig`, were too strict for them).
     """
 
     done: dict[str, float]
     skipped: list[str]
     masks: tuple[int, int, int, int]
+    empty: list[str] = field(default_factory=list)
 
 
 def langsplat_size(
@@ -267,7 +270,7 @@ def _check_or_write_manifest(output: Path, manifest: dict, overwrite: bool) -> N
         raise InputError(
             output,
             "holds views made by another tool (no preprocess.json); write to a new folder, or "
-            "pass overwrite to replace them",
+            "replace them with --overwrite",
         )
     if path.is_file() and not overwrite:
         previous = load_json(path)
@@ -276,7 +279,7 @@ def _check_or_write_manifest(output: Path, manifest: dict, overwrite: bool) -> N
                 path,
                 "this folder was preprocessed with other models or settings "
                 f"({previous.get('sam') if isinstance(previous, dict) else previous!r}); "
-                "write to a new folder, or pass overwrite to start again",
+                "write to a new folder, or start again with --overwrite",
             )
         return
     with atomic_output(path, "w") as handle:
@@ -307,6 +310,10 @@ def preprocess_images(
         overwrite: redo every view and replace the folder's record of models and settings.
         on_image: called after each image with its stem and seconds (None when skipped).
 
+    Each image whose masks come out empty at every level is named in the summary's ``empty``;
+    a warning is logged at the end when most images done are empty (``thgs build`` refuses a
+    folder without a single mask).
+
     Raises:
         InputError: the folder was made with other models or settings (unless ``overwrite``),
             its embedding space differs, or an image is unreadable.
@@ -317,11 +324,16 @@ def preprocess_images(
     recorded = read_embedding_space(output)
     if recorded is not None and recorded != (encoder.space, encoder.dim) and not overwrite:
         raise InputError(
-            output, f"holds {recorded[0]} features ({recorded[1]}-D), not {encoder.space}"
+            output,
+            f"holds {recorded[0]} features ({recorded[1]}-D), not {encoder.space} "
+            f"({encoder.dim}-D); write to a new folder, or start again with --overwrite",
         )
-    write_embedding_space(output, encoder.space, encoder.dim)
+    write_embedding_space(
+        output, encoder.space, encoder.dim, model=getattr(encoder, "model_path", None)
+    )
     done: dict[str, float] = {}
     skipped: list[str] = []
+    empty: list[str] = []
     counts = np.zeros(len(LEVELS), dtype=np.int64)
     for job in jobs:
         if not overwrite and _is_finished(output, job.stem):
@@ -333,9 +345,25 @@ def preprocess_images(
         image = read_image(job.path, job.size, max_height=config.max_height)
         guidance = preprocess_image(image, job.stem, segmenter, encoder, config)
         write_view_guidance(output, guidance)
-        counts += [len(guidance.level_ids(level)) for level in range(len(LEVELS))]
+        found = [len(guidance.level_ids(level)) for level in range(len(LEVELS))]
+        counts += found
+        if not any(found):
+            empty.append(job.stem)
         done[job.stem] = time.perf_counter() - start
         logger.info("%s: %d masks in %.2f s", job.stem, len(guidance.features), done[job.stem])
         if on_image is not None:
             on_image(job.stem, done[job.stem])
-    return PreprocessSummary(done, skipped, tuple(int(c) for c in counts))
+    if done and 2 * len(empty) > len(done):
+        logger.warning(
+            "%s: SAM kept no mask in %d of %d images (first: %s), and a field needs masks; "
+            "lower SAM's thresholds: --pred-iou-threshold (now %g), --stability-threshold "
+            "(now %g), --min-region-area (now %d)",
+            output,
+            len(empty),
+            len(done),
+            empty[0],
+            config.masks.pred_iou_threshold,
+            config.masks.stability_threshold,
+            config.masks.min_region_area,
+        )
+    return PreprocessSummary(done, skipped, tuple(int(c) for c in counts), empty)

@@ -106,7 +106,7 @@ class PointSegmenter:
             return config, network.to(device).eval()
 
         (config, self._model), source = load_local_model(
-            load, model, model_path, what="SAM", hint="--sam PATH"
+            load, model, model_path, what="SAM", hint="--sam DIR"
         )
         self.kind: str = config.model_type
         self.device = torch.device(device)
