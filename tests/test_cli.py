@@ -203,6 +203,13 @@ def test_query_prints_regions_and_writes_masks(small_dataset, small_field, tmp_p
             (k, r) for k, r, _ in selection.regions
         ]
         assert entry["gaussians"] == int(selection.gaussians.sum())
+        assert (
+            entry["confidence"] == pytest.approx(selection.confidence) and entry["confidence"] > 0.9
+        )
+        assert [r["confidence"] for r in entry["regions"]] == pytest.approx(
+            selection.region_confidence
+        )
+        assert f"{selection.confidence:.2f}" in stdout
         for i, view in enumerate(views):
             camera = scene.cameras.select([i])
             written = np.asarray(Image.open(out / Path(entry["files"][0]).parent / f"{view}.png"))

@@ -48,6 +48,9 @@ def test_search_colours_only_the_chunks_that_change(small_field):
         highlight = state.highlight
         assert highlight.kind == "query" and highlight.text == "teddy bear"
         assert "**teddy bear**" in app.results.content
+        shown = f"confidence that the scene holds it: {highlight.confidence:.2f}"
+        assert highlight.confidence > 0.9 and shown in app.results.content
+        assert "| relevancy | confidence | Gaussians |" in app.results.content
         np.testing.assert_array_equal(app.splats.rgba(), pack_rgba(*state.colors()))
         # a pick of another object re-sends only the chunks holding either object
         sent = app.splats.bytes_sent

@@ -134,6 +134,12 @@ def test_a_query_highlights_what_the_query_api_selects(opened, mode, expected):
     scores = query.relevancy(["mug"], 2)[0]
     assert [r for _, r, _ in highlight.ranking] == list(np.argsort(-scores, kind="stable")[:5])
     assert [s for _, _, s in highlight.ranking] == pytest.approx(np.sort(scores)[::-1][:5])
+    # the calibrated confidences: the query's, and every listed region's
+    assert highlight.confidence == selection.confidence
+    listed = {(k, r) for k, r, _ in (*highlight.ranking, *highlight.regions)}
+    assert set(highlight.region_confidence) == listed
+    for (k, r), value in highlight.region_confidence.items():
+        assert value == pytest.approx(query.confidence(["mug"], k)[0, r])
 
 
 def test_query_level_and_mode_changes_ask_again(state, opened):

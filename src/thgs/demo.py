@@ -89,6 +89,8 @@ class QueryResult:
             selection mode) with the same Gaussians.
         paper_iou: 3-D IoU of the paper's selection (top 3 of parts and objects).
         reason: why the automatic selection chose nothing, else None.
+        confidence: the calibrated probability that the scene holds what the query names
+            (:attr:`thgs.query.Selection.confidence`), None when unknown.
     """
 
     text: str
@@ -101,6 +103,7 @@ class QueryResult:
     best_iou: float
     paper_iou: float
     reason: str | None = None
+    confidence: float | None = None
 
 
 @dataclass(frozen=True)
@@ -165,6 +168,7 @@ class DemoReport:
                     "best_iou": None if np.isnan(q.best_iou) else q.best_iou,
                     "paper_iou": None if np.isnan(q.paper_iou) else q.paper_iou,
                     **({"reason": q.reason} if q.reason is not None else {}),
+                    "confidence": q.confidence,
                 }
                 for q in self.queries
             ],
@@ -189,9 +193,9 @@ class DemoReport:
             )
         lines += [
             "",
-            "| query | automatic selection (level:region relevancy) | 3-D IoU "
+            "| query | confidence | automatic selection (level:region relevancy) | 3-D IoU "
             "| paper's selection: 3-D IoU | best region of its level: 3-D IoU |",
-            "|---|---|---|---|---|",
+            "|---|---|---|---|---|---|",
         ]
         for q in self.queries:
             regions = ", ".join(f"{lv}:{r} {s:.3f}" for lv, r, s in q.regions) or q.reason
@@ -199,8 +203,10 @@ class DemoReport:
                 "–" if np.isnan(value) else f"{value:.3f}"
                 for value in (q.iou, q.paper_iou, q.best_iou)
             )
+            confidence = "–" if q.confidence is None else f"{q.confidence:.2f}"
             lines.append(
-                f"| {q.text} | {regions} | {iou} | {paper} | {LEVEL_NAMES[q.level]}: {best} |"
+                f"| {q.text} | {confidence} | {regions} | {iou} | {paper} "
+                f"| {LEVEL_NAMES[q.level]}: {best} |"
             )
         timings = ", ".join(f"{stage} {seconds:.2f} s" for stage, seconds in self.timings.items())
         lines += [
@@ -409,6 +415,7 @@ def run_demo(
                 best_iou=best_iou,
                 paper_iou=paper_iou,
                 reason=selection.reason,
+                confidence=selection.confidence,
             )
         )
         logger.info(

@@ -255,17 +255,24 @@ def demo(
         )
     stdout.print(levels)
     queries = Table(title="text queries (the automatic selection)", title_justify="left")
-    columns = ("query", "Gaussians", "3-D IoU", "paper's: 3-D IoU", "best region of its level")
-    for column in (*columns, "picture"):
+    columns = ("query", "confidence", "Gaussians", "3-D IoU", "paper's: 3-D IoU")
+    for column in (*columns, "best region of its level", "picture"):
         queries.add_column(column)
     for result in report.queries:
         iou, paper, best = (
             "–" if math.isnan(value) else f"{value:.3f}"
             for value in (result.iou, result.paper_iou, result.best_iou)
         )
+        confidence = "–" if result.confidence is None else f"{result.confidence:.2f}"
         level = ("sub-part", "part", "object")[result.level - 1]
         queries.add_row(
-            result.text, f"{result.selected:,}", iou, paper, f"{level}: {best}", result.image.name
+            result.text,
+            confidence,
+            f"{result.selected:,}",
+            iou,
+            paper,
+            f"{level}: {best}",
+            result.image.name,
         )
     stdout.print(queries)
     stdout.print(

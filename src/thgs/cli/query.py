@@ -55,15 +55,18 @@ def _selection_table(title: str, field, selections) -> Table:
     from thgs.hierarchy.levels import LEVEL_NAMES
 
     table = Table(title=title, title_justify="left")
-    for column in ("query", "regions (level region: relevancy, Gaussians)", "Gaussians"):
+    columns = ("query", "confidence", "regions (level region: relevancy, Gaussians)", "Gaussians")
+    for column in columns:
         table.add_column(column)
     for selection in selections:
         regions = "; ".join(
             f"{LEVEL_NAMES[k]} {r}: {score:.3f}, {int(field.sizes(k)[r]):,}"
             for k, r, score in selection.regions
         )
+        confidence = selection.confidence
         table.add_row(
             selection.text,
+            "" if confidence is None else f"{confidence:.2f}",
             regions or selection.reason or "nothing relevant",
             f"{int(selection.gaussians.sum()):,}",
         )

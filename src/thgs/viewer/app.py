@@ -397,13 +397,22 @@ class ViewerApp:
                 f"**{highlight.text}**: {len(highlight.regions)} region{plural}, "
                 f"{count:,} Gaussians"
             )
+        if highlight.confidence is not None:
+            head += f"  \nconfidence that the scene holds it: {highlight.confidence:.2f}"
         selected = {(level, region) for level, region, _ in highlight.regions}
-        rows = [
-            f"| {'✓' if (level, region) in selected else ''} | {LEVEL_NAMES[level]} {region} "
-            f"| {score:.3f} | {int(state.field.sizes(level)[region]):,} |"
-            for level, region, score in _ranking_with_selection(highlight)
+        rows = []
+        for level, region, score in _ranking_with_selection(highlight):
+            confidence = highlight.region_confidence.get((level, region))
+            rows.append(
+                f"| {'✓' if (level, region) in selected else ''} | {LEVEL_NAMES[level]} {region} "
+                f"| {score:.3f} | {'' if confidence is None else f'{confidence:.2f}'} "
+                f"| {int(state.field.sizes(level)[region]):,} |"
+            )
+        table = [
+            "| | region | relevancy | confidence | Gaussians |",
+            "|---|---|---|---|---|",
+            *rows,
         ]
-        table = ["| | region | relevancy | Gaussians |", "|---|---|---|---|", *rows]
         return "\n".join([head, "", *table])
 
     @staticmethod

@@ -22,7 +22,9 @@ from __future__ import annotations
 
 import logging
 import os
+from collections.abc import Mapping
 from dataclasses import dataclass, replace
+from dataclasses import field as dataclass_field
 from pathlib import Path
 from typing import Literal
 
@@ -156,6 +158,10 @@ class Highlight:
             ``(level, region, relevancy)``, whether selected or not.
         reason: queries that selected nothing in auto mode: why
             (:attr:`thgs.query.Selection.reason`).
+        confidence: queries: the calibrated probability that the scene holds what was asked
+            (:attr:`thgs.query.Selection.confidence`); None for picks or when unknown.
+        region_confidence: queries: ``(level, region)`` → the calibrated probability that the
+            region belongs to what was asked, for every ranked or selected region.
     """
 
     kind: Literal["query", "pick"]
@@ -165,6 +171,8 @@ class Highlight:
     anchor: int | None = None
     ranking: tuple[tuple[int, int, float], ...] = ()
     reason: str | None = None
+    confidence: float | None = None
+    region_confidence: Mapping[tuple[int, int], float] = dataclass_field(default_factory=dict)
 
     @property
     def primary(self) -> tuple[int, int] | None:
@@ -262,8 +270,23 @@ class ViewerState:
         top = np.lexsort((np.arange(scores.size), -scores))[: self.config.ranking]
         ranking = tuple((self.level, int(r), float(scores[r])) for r in top)
         self.last_text = text
+        listed = [(level, region) for level, region, _ in (*ranking, *selection.regions)]
+        by_level = {k: self.query.confidence([text], k)[0] for k in {k for k, _ in listed}}
+        region_confidence = {
+            (k, region): float(by_level[k][region])
+            for k, region in listed
+            if not np.isnan(by_level[k][region])
+        }
         self.highlight = Highlight(
-            "query", text, selection.regions, selection.gaussians, None, ranking, selection.reason
+            "query",
+            text,
+            selection.regions,
+            selection.gaussians,
+            None,
+            ranking,
+            selection.reason,
+            selection.confidence,
+            region_confidence,
         )
         logger.info(
             "query %r: %d regions, %d Gaussians",
