@@ -15,7 +15,7 @@ scores into probabilities:
   probability that the scene holds what the query names at all.
 
 Both pairs of constants were fitted (logistic regression, L2 weight 1e-3) on synth-small seeds
-0–4 and are reported on seeds 5–9 (``benchmarks/bench_confidence.py``; docs/query.md). They are
+0–2 and are reported on seeds 5–7 (``benchmarks/bench_confidence.py``; docs/query.md). They are
 measured on the MiniLM stand-in for CLIP; with real CLIP the scores are the same kind of number
 (distance from the scene's null in units of its spread) but the calibration is not measured.
 """
@@ -52,10 +52,10 @@ NULL_PHRASES = (
 )  # fmt: skip
 """The 80 COCO class names: the generic vocabulary each scene's null is measured with."""
 
-REGION_CALIBRATION = (1.90, -4.27)
+REGION_CALIBRATION = (1.94, -4.20)
 """(slope, offset) of the region confidence: σ(slope · z + offset)."""
 
-PRESENCE_CALIBRATION = (3.11, -3.69)
+PRESENCE_CALIBRATION = (3.30, -3.61)
 """(slope, offset) of the presence confidence: σ(slope · z_best + offset)."""
 
 
