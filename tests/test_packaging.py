@@ -27,6 +27,8 @@ from packaging.requirements import Requirement
 from packaging.utils import canonicalize_name
 
 from conftest import REPO
+from thgs.cli import entrypoint
+from thgs.errors import ThgsError
 
 pytest.importorskip("hatchling", reason="building needs the dev extra (hatchling)")
 pytest.importorskip("hatch_fancy_pypi_readme", reason="building needs the dev extra")
@@ -199,3 +201,80 @@ def test_the_import_scan_sees_module_level_and_function_imports(tmp_path, monkey
         ("src/thgs/mod.py", 9, "viser", False),
         ("src/thgs/mod.py", 10, "transformers", False),
     ]
+
+
+def _start_viewer():
+    from thgs.viewer.app import start_viewer
+
+    start_viewer("missing.thgs", port=0)
+
+
+def _minilm():
+    from thgs.text import MiniLMEncoder
+
+    MiniLMEncoder()
+
+
+def _clip_text():
+    from thgs.text import CLIPTextEncoder
+
+    CLIPTextEncoder()
+
+
+def _sam():
+    from thgs.guidance.preprocess.sam import PointSegmenter
+
+    PointSegmenter()
+
+
+def _clip_image():
+    from thgs.guidance.preprocess.clip_features import CLIPImageEncoder
+
+    CLIPImageEncoder()
+
+
+def _matplotlib():
+    from thgs.bench import require_matplotlib
+
+    require_matplotlib()
+
+
+def _gsplat():
+    from thgs.render.backends import get_backend
+
+    get_backend("gsplat")
+
+
+@pytest.mark.parametrize(
+    ("module", "extra", "use"),
+    [
+        ("viser", "viewer", _start_viewer),
+        ("sentence_transformers", "demo", _minilm),
+        ("transformers", "models", _clip_text),
+        ("transformers", "models", _sam),
+        ("transformers", "models", _clip_image),
+        ("matplotlib", "bench", _matplotlib),
+        ("gsplat", "gpu", _gsplat),
+    ],
+    ids=["viewer", "minilm", "clip-text", "sam", "clip-image", "bench-plot", "gsplat"],
+)
+def test_a_part_without_its_extra_names_the_extra(module, extra, use, monkeypatch):
+    """With the extra's module missing (None in sys.modules makes its import fail), the part
+    stops with a thgs error that says which extra to install."""
+    for name in [m for m in sys.modules if m == module or m.startswith(f"{module}.")]:
+        monkeypatch.delitem(sys.modules, name)
+    monkeypatch.setitem(sys.modules, module, None)
+    with pytest.raises(ThgsError, match=re.escape(f"pip install 'thgs[{extra}]'")):
+        use()
+
+
+def test_thgs_view_without_the_viewer_extra_is_one_error_line(monkeypatch, capsys):
+    for name in [m for m in sys.modules if m == "viser" or m.startswith("viser.")]:
+        monkeypatch.delitem(sys.modules, name)
+    monkeypatch.setitem(sys.modules, "viser", None)
+    with pytest.raises(SystemExit) as exit_info:
+        entrypoint(["view", "missing.thgs"])
+    err = capsys.readouterr().err
+    assert exit_info.value.code == 2
+    assert err.startswith("error: ") and "pip install 'thgs[viewer]'" in err
+    assert "Traceback" not in err

@@ -5,6 +5,7 @@ from __future__ import annotations
 import sys
 
 import tyro
+from rich.markup import escape
 
 from thgs.cli._console import stderr
 from thgs.cli.bench import bench
@@ -56,5 +57,6 @@ def entrypoint(argv: list[str] | None = None) -> None:
             args=argv,
         )
     except ThgsError as exc:
-        stderr.print(f"[bold red]error:[/] {exc}", highlight=False)
+        # escaped: a message such as "pip install 'thgs[viewer]'" is text, not rich markup
+        stderr.print(f"[bold red]error:[/] {escape(str(exc))}", highlight=False)
         sys.exit(2)
