@@ -30,15 +30,14 @@ from conftest import REPO
 from thgs.cli import entrypoint
 from thgs.errors import ThgsError
 
-pytest.importorskip("hatchling", reason="building needs the dev extra (hatchling)")
-pytest.importorskip("hatch_fancy_pypi_readme", reason="building needs the dev extra")
-
 REPOSITORY = "https://github.com/thgs-dev/thgs"
 EXTRAS = {"models", "viewer", "gpu", "demo", "bench", "dev"}
 
 
 def _build(kind: str, out: Path) -> Path:
     """Build the ``wheel`` or ``sdist`` into ``out`` through hatchling's PEP 517 hook."""
+    for module in ("hatchling", "hatch_fancy_pypi_readme"):
+        pytest.importorskip(module, reason="building needs the dev extra (scripts/setup.sh)")
     hook = f"import hatchling.build as b; print(b.build_{kind}({str(out)!r}))"
     result = subprocess.run(
         [sys.executable, "-c", hook], cwd=REPO, capture_output=True, text=True, timeout=300
