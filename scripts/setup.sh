@@ -5,8 +5,8 @@
 #   THGS_EXTRAS=dev bash scripts/setup.sh
 #
 # Steps: create the venv; install torch==2.13.0 first; pin it with scripts/constraints.txt in every
-# later pip call; build pycut-pursuit 0.1.3 from source against NumPy 2; install thgs (editable)
-# with its extras. torchvision is never installed, and the
+# later pip call; install thgs (editable) with its extras, all from wheels (pycut-pursuit's wheel and
+# the NumPy it was built against come from pyproject.toml). torchvision is never installed, and the
 # script fails if anything pulled it in. Idempotent: a second run with unchanged inputs does nothing.
 set -euo pipefail
 
@@ -55,13 +55,6 @@ pip=("$venv/bin/python" -m pip --disable-pip-version-check)
 
 echo "setup: torch 2.13.0 (CPU build)"
 "${pip[@]}" install --quiet torch==2.13.0
-echo "setup: build tools and NumPy 2"
-"${pip[@]}" install --quiet -c "$constraints" "numpy>=2" "setuptools>=61" wheel
-if ! "$venv/bin/python" -c "import cp_d0_dist" >/dev/null 2>&1 \
-   && ! "$venv/bin/python" -c "from pycut_pursuit import cp_d0_dist" >/dev/null 2>&1; then
-  echo "setup: building pycut-pursuit 0.1.3 from source (about 2 minutes)"
-  "${pip[@]}" install --quiet -c "$constraints" --no-build-isolation --no-binary pycut-pursuit pycut-pursuit==0.1.3
-fi
 echo "setup: thgs[$extras]"
 "${pip[@]}" install --quiet -c "$constraints" -e "$root[$extras]"
 

@@ -206,9 +206,9 @@ def _cut_pursuit(
         from pycut_pursuit.cp_d0_dist import cp_d0_dist
     except ImportError as error:
         raise ThgsError(
-            "the partition needs pycut-pursuit 0.1.3 built against your NumPy: pip install "
-            "--no-build-isolation --no-binary pycut-pursuit pycut-pursuit==0.1.3 "
-            "(scripts/setup.sh does this)"
+            f"the partition needs pycut-pursuit built against the installed NumPy {np.__version__}"
+            f" ({error}); its wheels need NumPy 1 up to Python 3.12 and NumPy 2 from 3.13, and "
+            "`pip install thgs` installs that pair (README, Installing)"
         ) from error
     m = features.shape[0]
     first_edge = np.zeros(m + 1, dtype=np.int32)

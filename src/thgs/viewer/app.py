@@ -467,8 +467,14 @@ def start_viewer(
 
     Returns:
         the running app; ``app.stop()`` stops it.
+
+    Raises:
+        ThgsError: viser is not installed (``pip install 'thgs[viewer]'``).
     """
-    import viser
+    try:
+        import viser
+    except ImportError as error:
+        raise ThgsError("the viewer needs viser: pip install 'thgs[viewer]'") from error
 
     with contextlib.redirect_stdout(io.StringIO()):  # viser prints a banner; the CLI prints
         server = viser.ViserServer(host=host, port=port, label="thgs", verbose=False)
