@@ -150,7 +150,9 @@ def test_demo_builds_queries_and_reports(tmp_path, capsys):
     assert set(report["miou"]) == {"subpart", "part", "object"}
     assert all(0.0 < value <= 1.0 for value in report["miou"].values())
     assert (out / "levels.png").is_file() and (out / "field.thgs").is_file()
-    assert "matched mIoU" in stdout and "query-mug.png" in stdout
+    assert "matched mIoU" in stdout and "query-*.png" in stdout
+    mug = report["queries"][0]
+    assert mug["confidence"] > 0.9 and f"mug ({mug['confidence']:.2f})" in stdout
     # a second run reuses the cached scene
     code, _, err = run(argv, capsys)
     assert code == 0, err

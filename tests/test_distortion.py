@@ -4,7 +4,7 @@ images are undistorted into, and masks made on the distorted image files are war
 Known answers: OpenCV's distortion model written out by hand (the fox capture's coefficients), and
 a synthetic round trip: a label picture defined on the pinhole camera's rays is "photographed"
 through the lens (each distorted pixel takes the label of its undistorted ray, found with
-cv2.undistortPoints), saved as LangSplat masks, read back through the COLMAP reader and
+cv2.undistortPointsIter), saved as LangSplat masks, read back through the COLMAP reader and
 load_guidance, and compared with the same picture drawn directly on the pinhole camera.
 """
 
@@ -193,11 +193,13 @@ def write_distorted_scene(root, model, params):
     centres = np.stack([cols, rows], -1).reshape(-1, 1, 2).astype(np.float64)
     K_cv = K.copy()
     K_cv[:2, 2] -= 0.5
-    rays = cv2.undistortPoints(
+    rays = cv2.undistortPointsIter(
         centres,
         K_cv,
         coeffs,
-        criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12),
+        None,
+        None,
+        (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12),
     ).reshape(HEIGHT, WIDTH, 2)
     ids = label_picture(rays[..., 0], rays[..., 1])
     n = int(ids.max()) + 1

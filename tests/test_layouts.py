@@ -281,7 +281,7 @@ def test_cfg_args_pointing_nowhere(small_dataset, tmp_path, monkeypatch, capsys,
 
     code, out, err = run(["build", "output/teatime", "-o", "f.thgs"], capsys)
     assert code == 2 and out == ""
-    assert squeezed(err).startswith("WARNINGcamerasfromoutput/teatime/cameras.json")
+    assert squeezed(err).startswith("warning:camerasfromoutput/teatime/cameras.json")
     assert squeezed(err.split("error:")[1]) == squeezed(
         "output/teatime/language_features: language features folder not found; "
         + named

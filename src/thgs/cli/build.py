@@ -255,8 +255,8 @@ def demo(
         )
     stdout.print(levels)
     queries = Table(title="text queries (the automatic selection)", title_justify="left")
-    columns = ("query", "confidence", "Gaussians", "3-D IoU", "paper's: 3-D IoU")
-    for column in (*columns, "best region of its level", "picture"):
+    columns = ("query (confidence)", "Gaussians", "3-D IoU", "paper's: 3-D IoU")
+    for column in (*columns, "best region of its level"):
         queries.add_column(column)
     for result in report.queries:
         iou, paper, best = (
@@ -266,13 +266,11 @@ def demo(
         confidence = "–" if result.confidence is None else f"{result.confidence:.2f}"
         level = ("sub-part", "part", "object")[result.level - 1]
         queries.add_row(
-            result.text,
-            confidence,
+            f"{result.text} ({confidence})",
             f"{result.selected:,}",
             iou,
             paper,
             f"{level}: {best}",
-            result.image.name,
         )
     stdout.print(queries)
     stdout.print(
