@@ -16,6 +16,7 @@ from thgs import (
     load_scene,
     summarize,
     write_cameras_json,
+    write_colmap,
     write_ply,
     write_transforms_json,
 )
@@ -144,3 +145,51 @@ def test_summary_numbers(shared_data):
     np.testing.assert_allclose(summary.opacity_quantiles[2], np.median(opacity), rtol=1e-6)
     assert summary.low_opacity_share == pytest.approx((opacity < 0.1).mean())
     assert summary.cameras is None
+
+
+def _moved(cameras, rotation, scale, shift):
+    """The same cameras in a world rotated by ``rotation``, scaled by ``scale`` and shifted:
+    p' = scale · rotation · p + shift (what nerfstudio's processing does to COLMAP's world)."""
+    import torch
+
+    viewmats = cameras.viewmats.clone()
+    r = torch.as_tensor(rotation, dtype=viewmats.dtype)
+    centres = scale * cameras.centers() @ r.T + torch.as_tensor(shift, dtype=viewmats.dtype)
+    viewmats[:, :3, :3] = cameras.viewmats[:, :3, :3] @ r.T
+    viewmats[:, :3, 3] = -(viewmats[:, :3, :3] @ centres[:, :, None])[:, :, 0]
+    return type(cameras)(viewmats, cameras.Ks, cameras.widths, cameras.heights, cameras.names)
+
+
+def test_colmap_and_transforms_json_in_one_folder_must_agree(tmp_path):
+    from scipy.spatial.transform import Rotation
+
+    cameras = random_cameras(5, centred=True)
+    data = tmp_path / "data"
+    write_colmap(data / "sparse" / "0", cameras)
+    turn = Rotation.from_euler("xyz", [0.3, -1.1, 2.0]).as_matrix()
+    write_transforms_json(data / "transforms.json", _moved(cameras, turn, 0.37, [1.0, -2.0, 0.5]))
+    # the same capture in nerfstudio's rescaled world: read from COLMAP, and said so
+    loaded, path, found = load_cameras(data)
+    assert path == data / "sparse" / "0" and "describes the same cameras" in found[0]
+    np.testing.assert_allclose(loaded.viewmats.numpy(), cameras.viewmats.numpy(), atol=1e-6)
+    # moved cameras, other intrinsics, other images: refused, naming both and the flag
+    moved = cameras.viewmats.clone()
+    moved[0, :3, 3] += 0.5
+    longer = cameras.Ks.clone()
+    longer[:, 0, 0] *= 1.01
+    for other, what in (
+        (type(cameras)(moved, cameras.Ks, cameras.widths, cameras.heights, cameras.names),
+         "different camera positions"),
+        (type(cameras)(cameras.viewmats, longer, cameras.widths, cameras.heights, cameras.names),
+         "different intrinsics"),
+        (cameras.select([0, 1, 2, 3]), "different images"),
+    ):  # fmt: skip
+        write_transforms_json(data / "transforms.json", other)
+        with pytest.raises(InputError, match=what) as error:
+            load_cameras(data)
+        message = str(error.value)
+        assert f"--source {data / 'sparse' / '0'}" in message
+        assert f"--source {data / 'transforms.json'}" in message
+        # either file named explicitly is read as it is
+        assert load_cameras(data / "transforms.json")[1] == data / "transforms.json"
+        assert load_cameras(data / "sparse" / "0")[1] == data / "sparse" / "0"

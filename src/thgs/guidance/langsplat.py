@@ -375,7 +375,8 @@ def load_guidance(
                         folder / f"{stem}_s.npy",
                         f"masks are {view.width}×{view.height} but the image file is "
                         f"{file_width}×{file_height} (its undistorted camera {width}×{height}); "
-                        "pass resize=True to resample them (nearest neighbour)",
+                        "resample them with --resize (load_guidance(resize=True); nearest "
+                        "neighbour)",
                     )
                 view = ViewGuidance(
                     stem,

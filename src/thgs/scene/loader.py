@@ -9,7 +9,9 @@ import re
 from dataclasses import dataclass, replace
 from pathlib import Path
 
+import numpy as np
 import torch
+from scipy.spatial.transform import Rotation
 
 from thgs._json import load_json
 from thgs.errors import InputError
@@ -94,7 +96,9 @@ def load_cameras(
     """Read the cameras of a source: a camera file, or a folder holding one.
 
     A folder is searched, in this order, for a COLMAP model in the folder itself, in ``sparse/0/``
-    or in ``sparse/``, then for ``transforms.json`` and ``cameras.json``. A file is read by its
+    or in ``sparse/``, then for ``transforms.json`` and ``cameras.json``. A folder holding both a
+    COLMAP model and a ``transforms.json`` must describe the same cameras in both (else an
+    :class:`InputError` says what differs and that ``--source`` chooses). A file is read by its
     content: a JSON list is a 3DGS ``cameras.json``, a JSON object with ``frames`` a
     ``transforms.json``.
 
@@ -114,6 +118,10 @@ def load_cameras(
     found: list[str] = []
     if source.is_dir():
         camera_path = _find_cameras(source)
+        if camera_path.is_dir() and (source / "transforms.json").is_file():
+            found.append(
+                _check_agreement(camera_path, source / "transforms.json", undo_applied_transform)
+            )
     elif source.is_file():
         camera_path = source
     else:
@@ -157,6 +165,54 @@ def load_cameras(
             f"images not checked (none found), {_size_range(cameras)} from the camera file"
         )
     return cameras, camera_path, found
+
+
+def _check_agreement(colmap: Path, transforms: Path, undo_applied_transform: bool) -> str:
+    """A folder holding both a COLMAP model and a ``transforms.json`` is read from COLMAP only
+    when both describe the same cameras: the same image stems, intrinsics within 0.1 % and camera
+    centres equal up to a similarity transform (nerfstudio rescales, rotates and shifts the world)
+    within 0.1 % of their spread. Returns the line for ``found``.
+
+    Raises:
+        InputError: they disagree (naming both, what differs and ``--source``, which decides).
+    """
+    first = read_colmap(colmap)
+    second = read_transforms_json(transforms, undo_applied_transform=undo_applied_transform)
+    problem = _disagreement(first, second)
+    if problem is not None:
+        raise InputError(
+            colmap.parent if colmap.parent.name == "sparse" else colmap,
+            f"holds a COLMAP model ({colmap}) and {transforms}, and they disagree: {problem}; "
+            f"choose one with --source {colmap} or --source {transforms}",
+        )
+    return f"{transforms} describes the same cameras as the COLMAP model; reading COLMAP"
+
+
+def _disagreement(first: Cameras, second: Cameras) -> str | None:
+    """What differs between two descriptions of one capture (see :func:`_check_agreement`), or
+    None."""
+    if sorted(first.stems) != sorted(second.stems):
+        only = sorted(set(first.stems) ^ set(second.stems))
+        return f"different images ({len(only)} in one only, e.g. {only[:3]})"
+    order = [first.stems.index(stem) for stem in second.stems]
+    scale = (second.widths.double() / first.widths[order].double())[:, None]
+    ratio = second.Ks[:, :2, :].reshape(len(second), -1) / (
+        first.Ks[order, :2, :].reshape(len(second), -1) * scale
+    ).clamp_min(1e-12)
+    known = first.Ks[order, :2, :].reshape(len(second), -1).abs() > 0
+    if ((ratio - 1).abs()[known] > 1e-3).any():
+        return "different intrinsics (focal lengths or principal points)"
+    a = first.centers()[order].numpy()
+    b = second.centers().numpy()
+    a, b = a - a.mean(axis=0), b - b.mean(axis=0)
+    spread_a, spread_b = np.sqrt((a**2).sum(axis=1).mean()), np.sqrt((b**2).sum(axis=1).mean())
+    if len(a) < 3 or spread_a == 0 or spread_b == 0:
+        return None
+    rotation, _ = Rotation.align_vectors(a / spread_a, b / spread_b)
+    residual = a / spread_a - rotation.apply(b / spread_b)
+    if np.sqrt((residual**2).sum(axis=1).mean()) > 1e-3:
+        return "different camera positions (no rotation, scale and shift maps one onto the other)"
+    return None
 
 
 def _find_cameras(folder: Path) -> Path:
