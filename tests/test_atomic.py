@@ -1,15 +1,25 @@
 """The atomic writers: results appear whole or not at all, with the permissions of a plainly
-created file or folder, and the process's umask is never touched."""
+created file or folder, and the process's umask is never touched; what a writer killed outright
+leaves is removed by the next writer of the same target, never what a running one is writing."""
 
 from __future__ import annotations
 
 import os
+import signal
 import stat
+import subprocess
+import sys
 import threading
 
 import pytest
 
-from thgs._atomic import atomic_folder, atomic_output, staging_folder
+from thgs._atomic import (
+    _HOST,
+    atomic_folder,
+    atomic_output,
+    remove_stale_temporaries,
+    staging_folder,
+)
 from thgs.errors import InputError
 
 
@@ -137,3 +147,85 @@ def test_concurrent_writers_to_one_target(tmp_path):
     content = target.read_text()
     assert len(content) == 1000 and len(set(content)) == 1
     assert hidden(tmp_path) == []
+
+
+# --- temporaries of writers killed outright ------------------------------------------------------
+
+_WRITER = """
+import os, signal, sys
+from pathlib import Path
+from thgs._atomic import atomic_folder, atomic_output
+
+folder, file = Path(sys.argv[1]), Path(sys.argv[2])
+with atomic_folder(folder) as staging, atomic_output(file) as handle:
+    (staging / "half.txt").write_text("half")
+    handle.write(b"half")
+    print("writing", flush=True)
+    if sys.argv[3] == "die":
+        os.kill(os.getpid(), signal.SIGKILL)
+    sys.stdin.read()
+"""
+
+
+def writer(tmp_path, mode: str) -> subprocess.Popen:
+    """A process halfway through writing ``out`` (a folder) and ``out.bin``."""
+    process = subprocess.Popen(
+        [sys.executable, "-c", _WRITER, str(tmp_path / "out"), str(tmp_path / "out.bin"), mode],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    assert process.stdout.readline() == "writing\n"
+    return process
+
+
+def test_a_killed_writers_temporaries_go_with_the_next_write_of_the_same_target(tmp_path):
+    killed = writer(tmp_path, "die")
+    assert killed.wait() == -signal.SIGKILL
+    (file,) = [name for name in hidden(tmp_path) if name.startswith(".out.bin.")]
+    (folder,) = [name for name in hidden(tmp_path) if name != file]
+    assert name_pid(folder) == name_pid(file) == killed.pid
+    (tmp_path / f".other.{_HOST}-{killed.pid}-{'a' * 12}.tmp").mkdir()  # another target's
+
+    with atomic_output(tmp_path / "out.bin") as handle:
+        handle.write(b"whole")
+    assert hidden(tmp_path) == sorted([folder, f".other.{_HOST}-{killed.pid}-{'a' * 12}.tmp"])
+    with atomic_folder(tmp_path / "out") as staging:
+        (staging / "whole.txt").write_text("whole")
+    assert hidden(tmp_path) == [f".other.{_HOST}-{killed.pid}-{'a' * 12}.tmp"]
+    assert os.listdir(tmp_path / "out") == ["whole.txt"]
+
+
+def name_pid(name: str) -> int:
+    return int(name.rsplit(".", 2)[1].split("-")[1])
+
+
+def test_a_running_writers_temporaries_are_kept(tmp_path):
+    running = writer(tmp_path, "wait")
+    try:
+        before = hidden(tmp_path)
+        assert len(before) == 2
+        assert remove_stale_temporaries(tmp_path / "out") == []
+        assert remove_stale_temporaries(tmp_path / "out.bin") == []
+        assert hidden(tmp_path) == before
+    finally:
+        running.kill()
+        running.wait()
+    assert len(remove_stale_temporaries(tmp_path / "out")) == 1
+    assert len(remove_stale_temporaries(tmp_path / "out.bin")) == 1
+    assert hidden(tmp_path) == []
+
+
+def test_other_machines_and_this_process_open_temporaries_are_kept(tmp_path):
+    other_host = "0" * 8 if _HOST != "0" * 8 else "1" * 8
+    elsewhere = tmp_path / f".out.{other_host}-1-{'b' * 12}.tmp"
+    elsewhere.mkdir()  # pid 1 means nothing on another machine
+    recycled = tmp_path / f".out.{_HOST}-{os.getpid()}-{'c' * 12}.tmp"
+    recycled.mkdir()  # this pid, but not a temporary this process has open: a recycled pid
+    not_ours = tmp_path / f".out.notes-{'d' * 12}.tmp"
+    not_ours.write_text("a user's file that only looks like a temporary")
+    with staging_folder(tmp_path / "out") as open_now:
+        assert not recycled.exists()  # removed when this writer started
+        assert remove_stale_temporaries(tmp_path / "out") == []  # its own is not stale
+        assert open_now.is_dir()
+    assert hidden(tmp_path) == sorted([elsewhere.name, not_ours.name])

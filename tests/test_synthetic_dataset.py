@@ -1,9 +1,16 @@
-"""A generated dataset loads back through the library's readers and agrees with itself."""
+"""A generated dataset loads back through the library's readers and agrees with itself;
+--overwrite replaces only a dataset thgs wrote; a run killed with kill -9 is cleaned up by the
+next one; modes follow the umask."""
 
 from __future__ import annotations
 
 import hashlib
 import json
+import os
+import shutil
+import stat
+import subprocess
+import sys
 from dataclasses import replace
 from pathlib import Path
 
@@ -22,6 +29,7 @@ from thgs.synthetic import (
     DatasetConfig,
     OracleConfig,
     SceneConfig,
+    check_dataset_output,
     generate_scene,
     label_categories,
     render_view,
@@ -200,3 +208,133 @@ def test_cli_synth_writes_a_loadable_dataset(tmp_path, capsys, encoder):
         entrypoint(["synth", "synth-small", str(out), "--gaussians", "4000", "--views", "2"])
     assert exit_info.value.code == 2
     assert "not empty" in capsys.readouterr().err
+
+
+# --- --overwrite replaces only what thgs wrote ----------------------------------------------------
+
+
+def _hidden(folder: Path) -> list[str]:
+    return sorted(name for name in os.listdir(folder) if name.startswith("."))
+
+
+def test_overwrite_refuses_a_folder_of_user_files(tmp_path, scene, capsys):
+    user = tmp_path / "mine"
+    (user / "photos").mkdir(parents=True)
+    (user / "notes.txt").write_text("keep me")
+    (user / "photos" / "a.jpg").write_bytes(b"jpeg")
+    before = _digest(user)
+    with pytest.raises(InputError, match=r"mine: is not a dataset thgs wrote \(no synthetic.json"):
+        write_dataset(user, scene, _FailingEncoder(), config=DATASET, overwrite=True)
+    # a look-alike marker is not enough
+    (user / "synthetic.json").write_text(json.dumps({"format": "something else"}))
+    with pytest.raises(InputError, match="is not a dataset thgs wrote"):
+        check_dataset_output(user, overwrite=True)
+    (user / "synthetic.json").unlink()
+    # the CLI refuses before generating anything: one error line, exit 2
+    code = _cli(["synth", "synth-small", str(user), "--overwrite"], capsys)
+    assert code == 2
+    err = " ".join(capsys.readouterr().err.split())  # rich wraps at the capture's width
+    assert err.startswith("error: ") and "mine: is not a dataset thgs wrote" in err
+    assert _digest(user) == before
+    assert _hidden(tmp_path) == []
+
+
+def test_overwrite_refuses_a_dataset_holding_other_files(dataset, tmp_path, scene):
+    copy = tmp_path / "copy"
+    shutil.copytree(dataset, copy)
+    (copy / "field.thgs").write_bytes(b"a field built here")
+    (copy / "renders").mkdir()
+    before = _digest(copy)
+    with pytest.raises(InputError, match=r"holds files thgs did not write \(field.thgs, renders\)"):
+        write_dataset(copy, scene, _FailingEncoder(), config=DATASET, overwrite=True)
+    assert _digest(copy) == before
+
+
+def test_current_parent_and_home_folders_are_never_replaced(dataset, tmp_path, monkeypatch):
+    copy = tmp_path / "copy"
+    shutil.copytree(dataset, copy)  # a valid dataset: the refusal does not depend on the marker
+    before = _digest(copy)
+    monkeypatch.chdir(copy)
+    with pytest.raises(InputError, match=r"^\.: is the current folder"):
+        check_dataset_output(".", overwrite=True)
+    monkeypatch.chdir(copy / "images")
+    with pytest.raises(InputError, match=r"^\.\.: holds the current folder"):
+        check_dataset_output("..", overwrite=True)
+    with pytest.raises(InputError, match="holds the current folder"):
+        check_dataset_output(copy, overwrite=True)
+    with pytest.raises(InputError, match="holds the current folder"):
+        check_dataset_output("/", overwrite=True)
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("HOME", str(copy))
+    with pytest.raises(InputError, match="is the home folder"):
+        check_dataset_output(copy, overwrite=True)
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    monkeypatch.chdir(empty)
+    with pytest.raises(InputError, match="is the current folder"):
+        check_dataset_output(".")  # even empty: renaming into place would pull it from the shell
+    assert _digest(copy) == before
+
+
+def test_overwrite_replaces_a_dataset_thgs_wrote(dataset, tmp_path, scene, encoder):
+    copy = tmp_path / "copy"
+    shutil.copytree(dataset, copy)
+    shutil.rmtree(copy / "label")
+    (copy / "images" / "stray.jpg").write_bytes(b"inside a dataset entry: replaced with it")
+    link = tmp_path / "link"
+    link.symlink_to(copy)
+    write_dataset(link, scene, encoder, oracle=OracleConfig(seed=7), config=DATASET, overwrite=True)
+    assert link.is_symlink() and link.resolve() == copy.resolve()
+    assert _digest(copy) == _digest(dataset)
+    assert _hidden(tmp_path) == []
+
+
+def _cli(argv: list[str], capsys) -> int:
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exit_info:
+        entrypoint(argv)
+    return exit_info.value.code
+
+
+# --- kill -9, modes -------------------------------------------------------------------------------
+
+_KILLED_WRITER = """
+import os, signal, sys
+from thgs.synthetic import DatasetConfig, OracleConfig, SceneConfig, generate_scene, write_dataset
+from thgs.text import MiniLMEncoder
+
+os.umask(0o002)
+config = SceneConfig(**{config})
+scene, encoder = generate_scene(config), MiniLMEncoder()
+dataset = DatasetConfig(evaluation_views=2, min_label_pixels=10)
+write_dataset(sys.argv[1], scene, encoder, oracle=OracleConfig(seed=7), config=dataset)
+kill = lambda done, total: os.kill(os.getpid(), signal.SIGKILL)
+oracle = OracleConfig(seed=7)
+write_dataset(sys.argv[2], scene, encoder, oracle=oracle, config=dataset, progress=kill)
+"""
+
+
+def test_modes_follow_the_umask_and_a_killed_run_is_cleaned_by_the_next(
+    dataset, tmp_path, scene, encoder
+):
+    whole, killed = tmp_path / "whole", tmp_path / "killed"
+    script = _KILLED_WRITER.replace("{config}", repr(TINY.__dict__))
+    done = subprocess.run(
+        [sys.executable, "-c", script, str(whole), str(killed)], capture_output=True, text=True
+    )
+    assert done.returncode == -9, done.stderr
+    # written under umask 002: folders 775 and files 664, as mkdir and open would make them
+    modes = {
+        stat.S_IMODE(path.stat().st_mode) for path in [whole, *whole.rglob("*")] if path.is_dir()
+    }
+    assert modes == {0o775}
+    assert {stat.S_IMODE(path.stat().st_mode) for path in whole.rglob("*") if path.is_file()} == {
+        0o664
+    }
+    # kill -9 left a hidden partial dataset, which the next run writing the same folder removes
+    assert not killed.exists()
+    (partial,) = [name for name in _hidden(tmp_path) if name.startswith(".killed.")]
+    assert any((tmp_path / partial / "images").iterdir())
+    write_dataset(killed, scene, encoder, oracle=OracleConfig(seed=7), config=DATASET)
+    assert _hidden(tmp_path) == []
+    assert _digest(killed) == _digest(dataset)

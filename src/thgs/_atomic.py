@@ -6,36 +6,125 @@ as it was and removes the temporary. The temporaries are created with the defaul
 (0o666 for files, 0o777 for folders), which the kernel reduces by the process's umask exactly
 as for a file or folder created plainly; the umask is never read, so no ``os.umask`` call
 changes it process-wide under a concurrent thread (the viewer writes exports from its own).
+
+A temporary is named ``.<name>.<host>-<pid>-<random>.tmp``: ``<host>`` is a short hash of the
+machine's name and ``<pid>`` the writing process. A process killed outright (kill -9, a power
+cut) cannot remove its temporaries, so every writer first removes the stale temporaries of its
+own target: those of this machine whose process no longer runs (``os.kill(pid, 0)``), or whose
+process is this one but which it no longer has open (a recycled pid, as in a container). Those
+of a process still running, or of another machine sharing the folder, are left alone.
 """
 
 from __future__ import annotations
 
 import contextlib
+import hashlib
+import logging
 import os
+import re
 import secrets
 import shutil
+import socket
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import IO, TypeVar
 
 from thgs.errors import InputError
 
-__all__ = ["atomic_folder", "atomic_output", "staging_folder"]
+__all__ = ["atomic_folder", "atomic_output", "remove_stale_temporaries", "staging_folder"]
 
 T = TypeVar("T")
+
+logger = logging.getLogger(__name__)
 
 _ATTEMPTS = 100
 """Random temporary names tried before giving up (a collision needs 2⁴⁸ bad luck)."""
 
+_HOST = hashlib.sha256(socket.gethostname().encode()).hexdigest()[:8]
+"""This machine in temporary names: a process id means something only on its own machine."""
 
-def _sibling(target: Path, create: Callable[[Path], T]) -> tuple[Path, T]:
-    """A new hidden ``.<name>.<random>.tmp`` beside ``target``, made by ``create``."""
-    for _ in range(_ATTEMPTS):
-        candidate = target.parent / f".{target.name}.{secrets.token_hex(6)}.tmp"
-        try:
-            return candidate, create(candidate)
-        except FileExistsError:
+_OWNER = re.compile(r"(?P<host>[0-9a-f]{8})-(?P<pid>[0-9]+)-[0-9a-f]{12}")
+"""The middle of a temporary's name, ``.<name>.<host>-<pid>-<random>.tmp``."""
+
+_OPEN: set[str] = set()
+"""This process's temporaries that are still being written (by any of its threads), as
+absolute paths."""
+
+
+def _key(path: Path) -> str:
+    return os.path.abspath(path)
+
+
+def _running(pid: int) -> bool:
+    """Whether a process ``pid`` exists on this machine (someone else's counts)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def remove_stale_temporaries(target: str | os.PathLike[str]) -> list[Path]:
+    """Remove the temporaries of ``target`` left by writers that were killed outright.
+
+    A temporary is stale when it was made on this machine by a process that no longer runs,
+    or by this process but is not one it is writing now (its pid was recycled). Temporaries
+    of running processes and of other machines are kept: they may be writing right now.
+
+    Returns:
+        The removed paths (files or folders), each logged as a warning.
+    """
+    target = Path(target)
+    prefix, removed = f".{target.name}.", []
+    try:
+        entries = list(os.scandir(target.parent))
+    except (FileNotFoundError, NotADirectoryError):
+        return removed
+    for entry in entries:
+        if not (entry.name.startswith(prefix) and entry.name.endswith(".tmp")):
             continue
+        owner = _OWNER.fullmatch(entry.name[len(prefix) : -len(".tmp")])
+        if owner is None or owner["host"] != _HOST:
+            continue
+        pid, path = int(owner["pid"]), Path(entry.path)
+        in_use = _key(path) in _OPEN if pid == os.getpid() else _running(pid)
+        if in_use:
+            continue
+        if entry.is_dir(follow_symlinks=False):
+            shutil.rmtree(path, ignore_errors=True)
+        else:
+            with contextlib.suppress(FileNotFoundError):
+                path.unlink()
+        logger.warning("removed %s, left by an interrupted writer (process %d)", path, pid)
+        removed.append(path)
+    return removed
+
+
+@contextlib.contextmanager
+def _sibling(target: Path, create: Callable[[Path], T]) -> Iterator[tuple[Path, T]]:
+    """A new hidden temporary beside ``target``, made by ``create`` after the stale ones of
+    ``target`` are removed; known to this process as open until the block ends."""
+    remove_stale_temporaries(target)
+    owner = f"{_HOST}-{os.getpid()}"
+    for _ in range(_ATTEMPTS):
+        candidate = target.parent / f".{target.name}.{owner}-{secrets.token_hex(6)}.tmp"
+        key = _key(candidate)
+        _OPEN.add(key)
+        try:
+            made = create(candidate)
+        except FileExistsError:
+            _OPEN.discard(key)
+            continue
+        except BaseException:
+            _OPEN.discard(key)
+            raise
+        try:
+            yield candidate, made
+        finally:
+            _OPEN.discard(key)
+        return
     raise FileExistsError(f"no free temporary name beside {target}")
 
 
@@ -52,18 +141,18 @@ def atomic_output(path: str | os.PathLike[str], mode: str = "wb") -> Iterator[IO
     """
     target = Path(path)
     target.parent.mkdir(parents=True, exist_ok=True)
-    tmp, fd = _sibling(target, _new_file)
-    try:
-        encoding = None if "b" in mode else "utf-8"
-        with os.fdopen(fd, mode, encoding=encoding) as handle:
-            yield handle
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.replace(tmp, target)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
+    with _sibling(target, _new_file) as (tmp, fd):
+        try:
+            encoding = None if "b" in mode else "utf-8"
+            with os.fdopen(fd, mode, encoding=encoding) as handle:
+                yield handle
+                handle.flush()
+                os.fsync(handle.fileno())
+            os.replace(tmp, target)
+        except BaseException:
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(tmp)
+            raise
 
 
 @contextlib.contextmanager
@@ -72,11 +161,11 @@ def staging_folder(beside: str | os.PathLike[str]) -> Iterator[Path]:
     whatever happens (for writers that move its files elsewhere one by one)."""
     target = Path(beside)
     target.parent.mkdir(parents=True, exist_ok=True)
-    tmp, _ = _sibling(target, lambda candidate: os.mkdir(candidate, 0o777))
-    try:
-        yield tmp
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
+    with _sibling(target, lambda candidate: os.mkdir(candidate, 0o777)) as (tmp, _):
+        try:
+            yield tmp
+        finally:
+            shutil.rmtree(tmp, ignore_errors=True)
 
 
 @contextlib.contextmanager
@@ -96,15 +185,15 @@ def atomic_folder(path: str | os.PathLike[str], *, replace: bool = False) -> Ite
     with staging_folder(target) as tmp:
         yield tmp
         if replace and target.is_dir():
-            old, _ = _sibling(target, lambda candidate: os.replace(target, candidate))
-            try:
-                os.replace(tmp, target)
-            except OSError as error:
-                os.replace(old, target)
-                raise InputError(
-                    target, f"could not move the new folder into place ({error})"
-                ) from error
-            shutil.rmtree(old, ignore_errors=True)
+            with _sibling(target, lambda candidate: os.replace(target, candidate)) as (old, _):
+                try:
+                    os.replace(tmp, target)
+                except OSError as error:
+                    os.replace(old, target)
+                    raise InputError(
+                        target, f"could not move the new folder into place ({error})"
+                    ) from error
+                shutil.rmtree(old, ignore_errors=True)
             return
         try:
             os.replace(tmp, target)

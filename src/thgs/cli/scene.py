@@ -139,7 +139,9 @@ def synth(
         context_mix: how much a mask's feature looks like its parent's and its surroundings'
             names, as CLIP crops do (0 = name-perfect, up to 1; docs/synthetic.md).
         evaluation_views: views that get LERF-OVS / 3DOVS labels.
-        overwrite: replace an existing dataset folder.
+        overwrite: replace an existing dataset folder that thgs wrote (its synthetic.json
+            marks it; a folder holding other files, the current folder or one holding it is
+            refused, and nothing is deleted).
         verbose: log what is done.
     """
     from rich.progress import Progress
@@ -147,6 +149,7 @@ def synth(
     from thgs.synthetic import (
         DatasetConfig,
         OracleConfig,
+        check_dataset_output,
         generate_scene,
         write_dataset,
     )
@@ -154,6 +157,7 @@ def synth(
     from thgs.text import MiniLMEncoder
 
     setup_logging(verbose)
+    check_dataset_output(out, overwrite=overwrite)
     overrides = {"seed": seed, "kind": kind}
     if gaussians is not None:
         overrides["gaussians"] = gaussians

@@ -14,6 +14,7 @@ See docs/synthetic.md.
 from thgs.synthetic.dataset import (
     DatasetConfig,
     DatasetSummary,
+    check_dataset_output,
     evaluation_views,
     label_categories,
     render_view,
@@ -31,6 +32,7 @@ __all__ = [
     "OracleConfig",
     "SceneConfig",
     "SyntheticScene",
+    "check_dataset_output",
     "evaluation_views",
     "generate_scene",
     "label_categories",

@@ -17,7 +17,14 @@ Layout of ``OUT/`` (one folder is both the trained-model folder and the training
     synthetic.json                                 how it was made (configs, seed, counts)
 
 Everything is written into a hidden sibling folder first and renamed to ``OUT`` at the end, so an
-interrupted run never leaves a half-written dataset. Same scene and configs → the same bytes.
+interrupted run never leaves a half-written dataset (one killed outright leaves its hidden folder,
+which the next run writing ``OUT`` removes; see :mod:`thgs._atomic`). Same scene and configs →
+the same bytes.
+
+``synthetic.json`` (``"format": "thgs.synthetic"``) is the marker of a dataset thgs wrote:
+``overwrite`` replaces only a folder that has it and nothing but the entries listed above, and
+never the current folder, a folder holding it, or the home folder
+(:func:`check_dataset_output`).
 """
 
 from __future__ import annotations
@@ -52,6 +59,7 @@ __all__ = [
     "SCANNET_LABELS",
     "DatasetConfig",
     "DatasetSummary",
+    "check_dataset_output",
     "evaluation_views",
     "label_categories",
     "render_view",
@@ -62,6 +70,26 @@ logger = logging.getLogger(__name__)
 
 SCANNET_LABELS = "scannet/synthetic_vh_clean_2.labels.ply"
 """Where the ScanNet-style labels go inside a dataset."""
+
+_MARKER = "synthetic.json"
+"""The file whose ``"format": "thgs.synthetic"`` says thgs wrote the folder."""
+
+_ENTRIES = frozenset(
+    {
+        "point_cloud",
+        "cameras.json",
+        "sparse",
+        "transforms.json",
+        "images",
+        "language_features",
+        "label",
+        "segmentations",
+        "scannet",
+        "ground_truth.safetensors",
+        _MARKER,
+    }
+)
+"""Everything :func:`write_dataset` puts at the top of a dataset folder."""
 
 
 @dataclass(frozen=True)
@@ -181,6 +209,79 @@ def _folder_bytes(folder: Path) -> int:
     return sum(path.stat().st_size for path in folder.rglob("*") if path.is_file())
 
 
+def _protected(folder: Path) -> str | None:
+    """Why ``folder`` (resolved) must never be replaced, or None."""
+    cwd = Path.cwd().resolve()
+    if folder == cwd:
+        return "is the current folder"
+    if folder in cwd.parents:
+        return f"holds the current folder {cwd}"
+    try:
+        home = Path.home().resolve()
+    except RuntimeError:
+        return None
+    if folder == home or folder in home.parents:
+        return "is the home folder or holds it"
+    return None
+
+
+def _is_dataset(folder: Path) -> bool:
+    """Whether ``folder`` holds the marker of a dataset thgs wrote."""
+    try:
+        record = json.loads((folder / _MARKER).read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return False
+    return isinstance(record, dict) and record.get("format") == "thgs.synthetic"
+
+
+def check_dataset_output(out: str | os.PathLike[str], *, overwrite: bool = False) -> Path:
+    """Check that :func:`write_dataset` may write ``out``, before any work is done.
+
+    ``out`` may be absent or an empty folder. An existing non-empty folder needs ``overwrite``,
+    and then it must be a dataset thgs wrote: ``synthetic.json`` with ``"format":
+    "thgs.synthetic"`` (the marker) and nothing at its top but the entries a dataset has (so no
+    file of the user's is deleted with it). The current folder, a folder holding it (``/``
+    included) and the home folder are never written in place (the new dataset is renamed into
+    place, which would pull the folder from under the shell), even empty.
+
+    Returns:
+        The folder to write: ``out`` with symbolic links resolved, so that replacing a linked
+        dataset replaces the folder it points to and keeps the link.
+
+    Raises:
+        InputError: naming ``out`` and why it cannot be written; nothing is deleted.
+    """
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise InputError(out, "exists and is not a folder")
+    folder = out.resolve()
+    if not out.is_dir():
+        return folder
+    refusal = _protected(folder)
+    if refusal is not None:
+        raise InputError(out, f"{refusal}; a dataset is never written in its place")
+    if not any(out.iterdir()):
+        return folder
+    if not overwrite:
+        raise InputError(out, "already exists and is not empty (replace it with --overwrite)")
+    if not _is_dataset(folder):
+        raise InputError(
+            out,
+            f"is not a dataset thgs wrote (no {_MARKER} with format thgs.synthetic); "
+            "--overwrite replaces only those: choose another folder or empty it yourself",
+        )
+    foreign = sorted(name for name in os.listdir(folder) if name not in _ENTRIES)
+    if foreign:
+        more = len(foreign) - 5
+        shown = ", ".join(foreign[:5]) + (f" and {more} more" if more > 0 else "")
+        raise InputError(
+            out,
+            f"holds files thgs did not write ({shown}); --overwrite would delete them: "
+            "move them out first",
+        )
+    return folder
+
+
 def write_dataset(
     out: str | os.PathLike[str],
     scene: SyntheticScene,
@@ -199,18 +300,16 @@ def write_dataset(
         encoder: the text model of the oracle features (its space is recorded).
         oracle: fault severity, feature noise and seed of the guidance.
         config: evaluation frames, image settings.
-        overwrite: replace an existing ``out``; otherwise an existing non-empty ``out`` is an error.
+        overwrite: replace an existing ``out`` that thgs wrote (:func:`check_dataset_output`);
+            otherwise an existing non-empty ``out`` is an error.
         progress: called with (views done, views) after each view.
 
     Raises:
-        InputError: ``out`` exists (without ``overwrite``) or is a file.
+        InputError: ``out`` cannot be written or replaced (:func:`check_dataset_output`).
     """
     out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise InputError(out, "exists and is not a folder")
-    if out.is_dir() and any(out.iterdir()) and not overwrite:
-        raise InputError(out, "already exists and is not empty (replace it with --overwrite)")
-    with atomic_folder(out, replace=True) as staging:
+    folder = check_dataset_output(out, overwrite=overwrite)
+    with atomic_folder(folder, replace=True) as staging:
         summary = _write(staging, scene, encoder, oracle, config, progress)
     summary = replace(summary, path=out)
     logger.info("wrote %s (%.1f MB)", out, summary.bytes / 1e6)
