@@ -165,3 +165,37 @@ def test_missing_scene_is_said_and_build_names_source(examples, capsys):
         entrypoint(["build", str(result), "-o", str(result / "a.thgs")])
     err = capsys.readouterr().err
     assert "data/kitchen" in err and "--source" in err
+
+
+def test_build_from_a_gsplat_result_folder_with_no_flags(small_dataset, tmp_path, monkeypatch):
+    """The synthetic dataset as gsplat's examples hold a trained scene::
+
+    examples/data/garden/{images, sparse/0, language_features}
+    examples/results/garden/{cfg.json or cfg.yml, ckpts/ckpt_29999[_rank0].pt}
+    """
+    from thgs import read_ply
+    from thgs.cli import entrypoint
+    from thgs.field import load_field
+
+    root = tmp_path / "examples"
+    data = root / "data" / "garden"
+    data.mkdir(parents=True)
+    for name in ("images", "sparse", "language_features"):
+        (data / name).symlink_to(small_dataset / name, target_is_directory=True)
+    gaussians = read_ply(small_dataset / "point_cloud" / "iteration_30000" / "point_cloud.ply")
+    result = root / "results" / "garden"
+    settings = {"data_dir": "data/garden", "data_factor": 1, "normalize_world_space": False}
+    if gaussians.kind == "2dgs":  # simple_trainer_2dgs: cfg.json, ckpt_<step>.pt
+        save(result / "ckpts" / "ckpt_29999.pt", splats_of(gaussians, third_scale=-4.0))
+        (result / "cfg.json").write_text(json.dumps({**settings, "result_dir": "results/garden"}))
+    else:
+        save(result / "ckpts" / "ckpt_29999_rank0.pt", splats_of(gaussians))
+        (result / "cfg.yml").write_text(cfg_yml("data/garden", factor=1))
+    monkeypatch.chdir(root)
+    try:
+        entrypoint(["build", "results/garden", "-o", "garden.thgs"])
+    except SystemExit as exc:  # pragma: no cover - the command returns normally
+        assert not exc.code
+    field = load_field("garden.thgs")
+    assert field.config["scene"] == {"path": "results/garden", "source": "data/garden"}
+    assert field.labels.shape == (len(gaussians), 4) and min(field.region_counts) > 0
