@@ -152,6 +152,20 @@ def test_bad_settings_name_the_file(examples, text, message):
     assert str(error.value).startswith(str(result / "cfg.yml"))
 
 
+def test_cfg_yml_and_cfg_json_must_agree(examples):
+    root, result, _, _ = examples
+    (result / "cfg.yml").write_text(cfg_yml("data/garden", factor=1))
+    same = {"data_dir": "data/garden", "data_factor": 1, "normalize_world_space": False}
+    (result / "cfg.json").write_text(json.dumps(same))
+    assert find_gsplat_source(result).folder == root / "data" / "garden"
+    (result / "cfg.json").write_text(json.dumps({**same, "data_dir": "data/bicycle"}))
+    with pytest.raises(InputError) as error:
+        find_gsplat_source(result)
+    message = str(error.value)
+    assert message.startswith(f"{result / 'cfg.yml'}: and {result / 'cfg.json'}")
+    assert "differ in data_dir; --source decides" in message
+
+
 def test_missing_scene_is_said_and_build_names_source(examples, capsys):
     from thgs.cli import entrypoint
 

@@ -37,6 +37,9 @@ GSPLAT_CONFIGS = ("cfg.yml", "cfg.json")
 """The settings files gsplat's trainers write into their result folder (simple_trainer,
 simple_trainer_2dgs)."""
 
+_KEYS = ("data_dir", "data_factor", "normalize_world_space", "data_type")
+"""The settings thgs reads."""
+
 _RETRAIN = (
     "retrain with --no-normalize-world-space (gsplat's flag), or pass --source with cameras in "
     "gsplat's normalised frame"
@@ -116,13 +119,24 @@ def find_gsplat_source(
         InputError: a malformed file or ``data_dir``/``data_factor``; a ``data_type`` other than
             ``colmap``; ``normalize_world_space`` true or absent (the Gaussians are in gsplat's
             normalised frame, not COLMAP's: the message says to retrain with
-            ``--no-normalize-world-space`` or to pass ``--source``); two folders that fit
+            ``--no-normalize-world-space`` or to pass ``--source``); ``cfg.yml`` and
+            ``cfg.json`` both there and disagreeing on these settings; two folders that fit
             ``data_dir`` equally well. Each message names the file.
     """
     path = gsplat_config_file(result_dir)
     if path is None:
         return None
     settings = read_gsplat_config(path)
+    other = Path(result_dir) / GSPLAT_CONFIGS[1]
+    if other != path and other.is_file():
+        second = read_gsplat_config(other)
+        differ = [key for key in _KEYS if settings.get(key) != second.get(key)]
+        if differ:
+            raise InputError(
+                path,
+                f"and {other} (simple_trainer's and simple_trainer_2dgs's settings) are both "
+                f"here and differ in {', '.join(differ)}; --source decides which scene",
+            )
     data_type = settings.get("data_type", "colmap")
     if data_type != "colmap":
         raise InputError(
