@@ -36,7 +36,8 @@ def _counts_table(title: str, counts, timings: dict[str, float]) -> Table:
 
 
 def _unfound_source(loaded: Scene) -> str:
-    """'' or, when the model's cfg_args names training data that is not here, '; <why>'."""
+    """'' or, when the model's cfg_args (gsplat: cfg.yml) names training data that is not here,
+    '; <why>'."""
     named = loaded.model_source
     if named is None or named.named is None or named.folder is not None:
         return ""
@@ -71,9 +72,10 @@ def build(
     and writes one field file (thgs.field), atomically.
 
     Args:
-        scene: a trained 3DGS/2DGS model folder or a .ply file. A model folder's cfg_args
-            names its training data (source_path), used as --source when found here
-            (docs/build.md); else the cameras are the folder's cameras.json.
+        scene: a trained 3DGS/2DGS model folder, a gsplat result folder (ckpts/ckpt_*.pt) or
+            a .ply file. A model folder's cfg_args names its training data (source_path), a
+            gsplat result folder's cfg.yml or cfg.json its data_dir, used as --source when
+            found here (docs/build.md); else the cameras are the folder's cameras.json.
         out: the field file to write (e.g. scene.thgs); replaced if it exists.
         guidance: the language_features folder (LangSplat layout: <stem>_s.npy, <stem>_f.npy);
             default: language_features in the source (--source, or cfg_args's), else in the
@@ -86,8 +88,8 @@ def build(
             superpoints.lift.raster.backend=torch (dotted names as in the config; values are
             JSON, or text); every setting of every stage is reachable (docs/build.md).
         source: the training data folder (COLMAP sparse/0 or transforms.json, images/,
-            language_features/) or a camera file; decides over the model's cfg_args and
-            cameras.json.
+            language_features/) or a camera file; decides over the model's cfg_args (or
+            gsplat's cfg.yml) and cameras.json.
         iteration: which iteration_* of a model folder (default: the newest).
         images: image folder name inside the source, e.g. images_4.
         scale: image size / camera-file size, e.g. 0.25 for images_4. Never guessed.

@@ -76,10 +76,12 @@ def info(
 
     Args:
         path: a trained 3DGS/2DGS model folder (point_cloud/iteration_*/point_cloud.ply,
-            cameras.json, cfg_args) or a .ply file.
+            cameras.json, cfg_args), a gsplat result folder (ckpts/ckpt_*.pt, cfg.yml) or a
+            .ply file.
         source: cameras from here: a training data folder (COLMAP sparse/0 + images/,
-            transforms.json) or a camera file; default the source the model's cfg_args names
-            when it is found here, else the model's cameras.json.
+            transforms.json) or a camera file; default the source the model's cfg_args (a
+            gsplat result folder's cfg.yml: data_dir) names when it is found here, else the
+            model's cameras.json.
         iteration: which iteration_* of a model folder (default: the newest).
         images: image folder name inside the source, e.g. images_4 (default: images, if present).
         scale: image size / camera-file size, e.g. 0.25 for images_4. Never guessed.

@@ -36,7 +36,7 @@ from typing import Any
 
 from thgs.errors import InputError
 
-__all__ = ["CFG_ARGS", "ModelSource", "find_model_source", "read_cfg_args"]
+__all__ = ["CFG_ARGS", "ModelSource", "find_model_source", "locate_source", "read_cfg_args"]
 
 CFG_ARGS = "cfg_args"
 """The file name the 3DGS-family trainers write their settings to, in the model folder."""
@@ -87,13 +87,16 @@ class ModelSource:
     """The training data a model folder's ``cfg_args`` names, and where it is here.
 
     Attributes:
-        cfg_args: the ``cfg_args`` file.
-        named: its ``source_path`` as written; None when it has none.
+        cfg_args: the settings file: ``cfg_args``, or a gsplat result folder's ``cfg.yml`` /
+            ``cfg.json`` (:func:`thgs.scene.gsplat_config.find_gsplat_source`).
+        named: its ``source_path`` (gsplat: ``data_dir``) as written; None when it has none.
         folder: the training data folder found here (see the module docstring), or None.
         searched: the folders under which ``named`` (or its tails) was looked for.
         tails: the tails of ``named`` looked for under ``searched`` (empty when ``named`` was
             found as written).
-        images: cfg_args's ``images`` (the image folder inside the source), if it names one.
+        images: the image folder inside the source the model was trained on, if the file names
+            one (cfg_args's ``images``; gsplat's ``images_<data_factor>`` when the factor is > 1).
+        key: the setting that names the source (``source_path``, gsplat's ``data_dir``).
     """
 
     cfg_args: Path
@@ -102,11 +105,12 @@ class ModelSource:
     searched: tuple[Path, ...] = ()
     tails: tuple[str, ...] = ()
     images: str | None = None
+    key: str = "source_path"
 
     def describe(self) -> str:
         """One line: what cfg_args names and where (or whether) it was found."""
         if self.named is None:
-            return f"{self.cfg_args} names no source_path"
+            return f"{self.cfg_args} names no {self.key}"
         if self.folder is None:
             return (
                 f"{self.cfg_args} names the source {self.named!r}, which is not here "
@@ -190,9 +194,46 @@ def find_model_source(
         raise InputError(
             path, f"source_path must be a folder name, got {named!r}; --source decides instead"
         )
+    return locate_source(
+        path, named, model_dir, run_path=settings.get("model_path"), images=images, cwd=cwd
+    )
+
+
+def locate_source(
+    settings_file: Path,
+    named: str,
+    model_dir: str | os.PathLike[str],
+    *,
+    run_path: Any = None,
+    key: str = "source_path",
+    images: str | None = None,
+    cwd: str | os.PathLike[str] | None = None,
+) -> ModelSource:
+    """Where the training data folder ``named`` by a trainer's settings file is on this machine.
+
+    The search of the module docstring, shared by ``cfg_args`` and gsplat's ``cfg.yml``.
+
+    Args:
+        settings_file: the file that names it (``cfg_args``, ``cfg.yml`` …), for messages.
+        named: the folder as written there.
+        model_dir: the trained model (or result) folder.
+        run_path: the model folder as written in the same file (cfg_args's ``model_path``,
+            gsplat's ``result_dir``); when relative, where training ran is the model folder with
+            it taken off.
+        key: the setting that named the folder, for messages.
+        images: recorded in the result (the image folder the model was trained on).
+        cwd: the working folder relative paths start from (default the process's).
+
+    Returns:
+        a :class:`ModelSource`; its ``folder`` is None when nothing here fits.
+
+    Raises:
+        InputError: two different folders fit ``named`` equally well.
+    """
+    path = settings_file
     here = Path(os.path.abspath(cwd if cwd is not None else os.getcwd()))
     model = Path(os.path.abspath(model_dir))
-    root = _training_root(model_dir, settings.get("model_path"))
+    root = _training_root(Path(model_dir), run_path)
 
     given = Path(named)
     direct = [given if given.is_absolute() else here / given]
@@ -200,7 +241,9 @@ def find_model_source(
         direct += [folder / given for folder in (root, model.parent) if folder is not None]
     for candidate in _unique(direct):
         if candidate.is_dir() and candidate.resolve() != model.resolve():
-            return ModelSource(path, named, Path(os.path.normpath(candidate)), images=images)
+            return ModelSource(
+                path, named, Path(os.path.normpath(candidate)), images=images, key=key
+            )
 
     bases = _unique([b for b in (root, model.parent, model.parent.parent, here) if b is not None])
     parts = _drop_drive(_parts(named))
@@ -220,5 +263,5 @@ def find_model_source(
                 f"it: {', '.join(map(str, matches))}; choose one with --source",
             )
         if matches:
-            return ModelSource(path, named, matches[0], tuple(bases), tails, images)
-    return ModelSource(path, named, None, tuple(bases), tails, images)
+            return ModelSource(path, named, matches[0], tuple(bases), tails, images, key)
+    return ModelSource(path, named, None, tuple(bases), tails, images, key)

@@ -25,7 +25,9 @@ names simple_trainer writes) and ``ckpt_<step>.pt`` without a ``cfg.yml`` as 2DG
 simple_trainer_2dgs writes).
 
 gsplat normalises the world frame by default (``normalize_world_space``), so a checkpoint's
-Gaussians are usually not in the COLMAP frame of their training data: see docs/build.md.
+Gaussians are usually not in the COLMAP frame of their training data: a result folder whose
+settings say so is refused by :func:`thgs.scene.load_scene` (:mod:`thgs.scene.gsplat_config`,
+docs/build.md).
 """
 
 from __future__ import annotations

@@ -21,6 +21,7 @@ from thgs.scene.cfg_args import ModelSource, find_model_source
 from thgs.scene.colmap import read_colmap
 from thgs.scene.gaussians import Gaussians
 from thgs.scene.gsplat_checkpoint import find_gsplat_checkpoint, read_gsplat_checkpoint
+from thgs.scene.gsplat_config import find_gsplat_source, gsplat_config_file, read_gsplat_config
 from thgs.scene.images import find_images, fit_to_images
 from thgs.scene.ply import read_ply
 from thgs.scene.transforms_json import read_transforms_json
@@ -237,6 +238,26 @@ def _size_range(cameras: Cameras) -> str:
     return f"{span(cameras.widths)}×{span(cameras.heights)} px"
 
 
+def _warn_if_normalized(result_dir: Path, found: list[str]) -> None:
+    """With ``--source`` given for a gsplat result folder: say so when its settings file records
+    gsplat's normalised world frame (the cameras given must then be in that frame)."""
+    config = gsplat_config_file(result_dir)
+    if config is None:
+        return
+    try:
+        normalized = read_gsplat_config(config).get("normalize_world_space", True)
+    except InputError:
+        return
+    if normalized is not False:
+        line = (
+            f"{config} records normalize_world_space: {normalized!r}: the checkpoint's Gaussians "
+            "are in gsplat's normalised frame, so the cameras of --source must be too (COLMAP's "
+            "own cameras do not fit them)"
+        )
+        logger.warning("%s", line)
+        found.append(line)
+
+
 def load_scene(
     path: str | os.PathLike[str],
     *,
@@ -252,13 +273,15 @@ def load_scene(
         path: a 3DGS/2DGS model folder (``point_cloud/iteration_*/point_cloud.ply``, usually
             ``cameras.json`` and ``cfg_args``), a ``.ply`` file, a gsplat result folder
             (``ckpts/ckpt_*.pt``) or one gsplat checkpoint ``.pt``
-            (:func:`thgs.scene.read_gsplat_checkpoint`; gsplat keeps no cameras with it: give
-            ``source``).
+            (:func:`thgs.scene.read_gsplat_checkpoint`; its cameras come from the COLMAP scene
+            its ``cfg.yml``/``cfg.json`` names, see
+            :func:`thgs.scene.gsplat_config.find_gsplat_source`, or from ``source``).
         source: where the cameras come from: the training data folder (COLMAP ``sparse/0`` +
             ``images/``, or ``transforms.json``) or a camera file. See :func:`load_cameras`.
             Default: for a model folder, the training data its ``cfg_args`` names when it is
             found here (:func:`thgs.scene.cfg_args.find_model_source`), else the model's
-            ``cameras.json``.
+            ``cameras.json``; for a gsplat result folder (or a checkpoint in its ``ckpts/``),
+            the ``data_dir`` of its settings file when found here.
         iteration: which ``iteration_*`` of a model folder, or which step of a gsplat result
             folder; default the newest.
         images: the image folder's name inside ``source`` (e.g. ``images_4``); default
@@ -270,16 +293,20 @@ def load_scene(
         a :class:`Scene`; it logs, and lists in ``found``, what it recognised.
 
     Raises:
-        InputError: nothing recognisable at ``path`` or ``source``, a malformed ``cfg_args``,
-            two folders that fit its ``source_path``, or any reader's error.
+        InputError: nothing recognisable at ``path`` or ``source``, a malformed ``cfg_args``
+            or gsplat settings file, two folders that fit its ``source_path``/``data_dir``, a
+            gsplat result folder trained in its normalised world frame with no ``source``
+            given, or any reader's error.
     """
     path = Path(path)
     found: list[str] = []
     model_cameras: Path | None = None
     model_source: ModelSource | None = None
+    result_dir: Path | None = None
     if path.is_dir() and not (path / "point_cloud").is_dir() and (path / "ckpts").is_dir():
         ply_path = find_gsplat_checkpoint(path, iteration)
         found.append(f"gsplat result folder {path}, checkpoint {ply_path.name}")
+        result_dir = path
     elif path.is_dir():
         ply_path, chosen = _model_ply(path, iteration)
         found.append(f"trained model folder {path}, iteration {chosen}")
@@ -311,8 +338,26 @@ def load_scene(
         if iteration is not None:
             raise InputError(path, "iteration is only meaningful for a model folder")
         ply_path = path
+        if path.suffix.lower() == ".pt" and path.parent.name == "ckpts":
+            result_dir = path.parent.parent
     else:
         raise InputError(path, "no such file or folder")
+    if result_dir is not None:
+        if source is None:
+            model_source = find_gsplat_source(result_dir)
+        else:
+            _warn_if_normalized(result_dir, found)
+        if model_source is not None:
+            found.append(model_source.describe())
+            source = model_source.folder
+            if source is not None and model_source.images not in (None, images):
+                factor = model_source.images.removeprefix("images_")
+                found.append(
+                    f"{model_source.cfg_args}: gsplat trained on {model_source.images!r} "
+                    f"(data_factor {factor}); thgs checks the cameras against "
+                    f"{images or 'images'!r} (--images {model_source.images} --scale "
+                    f"{1 / int(factor):g} choose those)"
+                )
 
     if ply_path.suffix.lower() == ".pt":
         gaussians = read_gsplat_checkpoint(ply_path)
@@ -348,9 +393,10 @@ def load_scene(
             ) from exc
         found.extend(camera_found)
     elif model_source is not None and model_source.named is not None:
+        beside = "" if result_dir is not None else "no cameras.json in the model folder and "
         found.append(
-            "no cameras: no cameras.json in the model folder and its source is not here (pass "
-            "--source with COLMAP, transforms.json or cameras.json)"
+            f"no cameras: {beside}its source is not here (pass --source with COLMAP, "
+            "transforms.json or cameras.json)"
         )
     else:
         found.append("no cameras (pass a source with COLMAP, transforms.json or cameras.json)")
