@@ -11,16 +11,17 @@ import subprocess
 import sys
 import urllib.request
 from pathlib import Path
+from urllib.parse import urlsplit
 
 import numpy as np
 import pytest
 
-from thgs.viewer.app import start_viewer
+from thgs.viewer.app import start_viewer, viewer_url
 from thgs.viewer.splats import pack_rgba
 
 
-def _serves(port: int) -> bool:
-    with urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=10) as response:
+def _serves(url: str) -> bool:
+    with urllib.request.urlopen(url, timeout=10) as response:
         return response.status == 200 and b"<html" in response.read().lower()
 
 
@@ -105,7 +106,7 @@ def test_an_unwritable_export_folder_is_reported_and_the_server_keeps_running(ap
     _press(app.export_button)
     assert "cannot write the selection there" in app.problem
     assert str(blocker / "exports") in app.problem and "Problem:" in app.status.content
-    assert _serves(app.server.get_port())
+    assert _serves(viewer_url(app, "127.0.0.1"))
     app.export_folder.value = str(tmp_path / "exports")
     _press(app.export_button)
     assert (tmp_path / "exports" / "mug.ply").is_file()
@@ -126,7 +127,7 @@ def test_a_field_of_another_scene_is_reported_and_another_field_can_be_opened(
         assert app.state is None
         assert "4000 Gaussians but the scene" in app.problem and "2000" in app.problem
         assert "Problem:" in app.status.content
-        assert _serves(app.server.get_port())
+        assert _serves(viewer_url(app, "127.0.0.1"))
         app.scene_path = None
         app.field_path.value = str(small_field)
         _press(app.open_button)
@@ -149,7 +150,7 @@ def test_a_port_in_use_moves_to_the_next_free_one(small_field):
             assert bound != port
             assert app.notes == [f"port {port} is in use; serving on port {bound}"]
             assert f"port {port} is in use" in app.status.content
-            assert _serves(bound)
+            assert _serves(viewer_url(app, "127.0.0.1"))
         finally:
             app.stop()
 
@@ -171,10 +172,11 @@ def test_thgs_view_serves_until_interrupted(small_field):
     second = None
     try:
         line = process.stdout.readline()
-        assert line.startswith(f"thgs view: http://127.0.0.1:{port} (4,000 Gaussians)"), (
+        assert line.startswith(f"thgs view: http://127.0.0.1:{port}/?token="), (
             line + process.stderr.read() if process.poll() is not None else line
         )
-        assert _serves(port)
+        assert line.split()[3:5] == ["(4,000", "Gaussians);"], line
+        assert _serves(line.split()[2])
         # a second viewer on the same port, of a field that does not exist: both say so, and
         # it serves anyway
         missing = small_field.parent / "missing.thgs"
@@ -187,8 +189,8 @@ def test_thgs_view_serves_until_interrupted(small_field):
         )
         line = second.stdout.readline()
         assert line.startswith("thgs view: http://127.0.0.1:") and "(no field open)" in line
-        moved = int(line.split(":")[3].split()[0])
-        assert moved != port and _serves(moved)
+        moved = urlsplit(line.split()[2]).port
+        assert moved != port and _serves(line.split()[2])
         second.send_signal(signal.SIGINT)
         assert second.wait(timeout=30) == 0
         err = " ".join(second.stderr.read().split())

@@ -18,7 +18,7 @@ import pytest
 
 from conftest import REPO
 from thgs.query import QueryConfig
-from thgs.viewer.app import start_viewer
+from thgs.viewer.app import start_viewer, viewer_url
 from thgs.viewer.splats import pack_rgba
 
 CHROMIUM = Path(os.environ.get("THGS_CHROMIUM", "/usr/bin/chromium"))
@@ -95,7 +95,7 @@ def test_query_click_and_climb_in_headless_chromium(browser, small_field):
     try:
         state = app.state
         page = browser.new_page()
-        page.goto(f"http://127.0.0.1:{app.server.get_port()}/")
+        page.goto(viewer_url(app, "127.0.0.1"))
         page.get_by_text("4,000 Gaussians").wait_for(timeout=60_000)
         before = _settled(page, artifacts / "1-opened.png")  # the splats arrive and are sorted
 

@@ -25,6 +25,7 @@ def view(
     threshold: float | None = None,
     text_model: Path | None = None,
     device: Literal["auto", "cpu", "cuda", "mps"] = "auto",
+    token: bool = True,
     verbose: bool = False,
 ) -> None:
     """Explore a semantic field in the browser: text queries, click-to-pick, climbing the
@@ -51,6 +52,9 @@ def view(
             for a field that records none, the Hugging Face cache).
         device: where to render: auto (a CUDA GPU if torch sees one, else MPS, else the CPU),
             cpu, cuda or mps (docs/rendering.md).
+        token: require the secret token in the printed URL (as Jupyter does); --no-token
+            lets anyone who can reach the port in (requests must still name this server in
+            their Host and Origin headers).
         verbose: log what is loaded and every action.
     """
     from thgs.viewer.app import start_viewer, viewer_url
@@ -67,10 +71,13 @@ def view(
         text_model=text_model,
         config=config,
         device=device,
+        token=token,
     )
     try:
         count = f"{len(app.state):,} Gaussians" if app.state is not None else "no field open"
-        stdout.print(f"thgs view: {viewer_url(app, host)} ({count}); Ctrl-C to stop")
+        stdout.print(
+            f"thgs view: {viewer_url(app, host)} ({count}); Ctrl-C to stop", soft_wrap=True
+        )
         while True:
             time.sleep(1.0)
     except KeyboardInterrupt:

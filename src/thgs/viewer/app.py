@@ -26,6 +26,7 @@ from thgs.hierarchy.levels import LEVEL_NAMES
 from thgs.query import FieldQuery, default_threshold
 from thgs.scene import Scene
 from thgs.viewer.camera import camera_pose, click_pixel, viewport_camera, viewport_size
+from thgs.viewer.guard import AccessGuard, guarded_websockets, new_token
 from thgs.viewer.splats import SplatChunks, hierarchy_order, splat_covariances
 from thgs.viewer.state import COLOR_MODES, QUERY_MODES, Highlight, ViewerConfig, ViewerState
 
@@ -72,6 +73,7 @@ class ViewerApp:
         self.problem: str | None = None
         self.notes: list[str] = []
         self.text_off: str | None = None
+        self.token: str | None = None
         self._lock = threading.RLock()
         self._field_path: Path | None = None
         self._syncing = False
@@ -457,8 +459,13 @@ def start_viewer(
     text_model: str | os.PathLike[str] | None = None,
     config: ViewerConfig = ViewerConfig(),
     device: str = "auto",
+    token: bool = True,
 ) -> ViewerApp:
     """Start a viser server on ``host``:``port`` and show ``field`` in it.
+
+    The server answers only requests addressed to it (``Host`` and ``Origin``) and, with
+    ``token`` (the default), carrying the secret made here (``app.token``; in
+    :func:`viewer_url`): :mod:`thgs.viewer.guard`. ``token=False`` is the explicit opt-out.
 
     The server always starts: a field that cannot be opened (unreadable, or built on other
     Gaussians than the scene) is reported in ``app.problem``, in the log and in the viewer, where
@@ -476,9 +483,12 @@ def start_viewer(
     except ImportError as error:
         raise ThgsError("the viewer needs viser: pip install 'thgs[viewer]'") from error
 
-    with contextlib.redirect_stdout(io.StringIO()):  # viser prints a banner; the CLI prints
+    guard = AccessGuard(host, new_token() if token else None)
+    # viser prints a banner (the CLI prints instead)
+    with contextlib.redirect_stdout(io.StringIO()), guarded_websockets(guard):
         server = viser.ViserServer(host=host, port=port, label="thgs", verbose=False)
     app = ViewerApp(server, config, scene=scene, text_model=text_model, device=device)
+    app.token = guard.token
     bound = server.get_port()
     if port != 0 and bound != port:
         app.notes.append(f"port {port} is in use; serving on port {bound}")
@@ -492,6 +502,8 @@ def start_viewer(
 
 
 def viewer_url(app: ViewerApp, host: str) -> str:
-    """The address to open in a browser."""
+    """The address to open in a browser, with the token when the server needs one."""
     shown = "127.0.0.1" if host in ("0.0.0.0", "") else host
-    return f"http://{shown}:{app.server.get_port()}"
+    shown = f"[{shown}]" if ":" in shown else shown
+    query = f"/?token={app.token}" if app.token is not None else ""
+    return f"http://{shown}:{app.server.get_port()}{query}"
