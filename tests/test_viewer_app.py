@@ -26,8 +26,8 @@ def _serves(url: str) -> bool:
 
 
 @pytest.fixture
-def app(small_field):
-    app = start_viewer(small_field, port=0)
+def app(small_field, tmp_path):
+    app = start_viewer(small_field, port=0, export_root=tmp_path)
     yield app
     app.stop()
 
@@ -97,6 +97,42 @@ def test_gui_controls_drive_the_state(app, tmp_path):
     assert app.problem is None
 
 
+def test_exports_stay_inside_the_export_root(app, tmp_path):
+    app.query_text.value = "mug"
+    _press(app.search)
+    assert app.export_root == tmp_path.resolve()
+    (tmp_path / "inside").mkdir()
+    (tmp_path / "inside" / "out").symlink_to(tmp_path.parent)
+    for outside in ("/tmp", "..", "inside/../..", str(tmp_path.parent / "x"), "inside/out"):
+        app.export_folder.value = outside
+        _press(app.export_button)
+        assert "is outside" in app.problem and "--export-root" in app.problem, outside
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["inside"]
+    assert not list(tmp_path.parent.glob("mug*"))
+    for inside, folder in ((".", tmp_path), ("a/b", tmp_path / "a" / "b"),
+                           (str(tmp_path / "c"), tmp_path / "c")):  # fmt: skip
+        app.export_folder.value = inside
+        _press(app.export_button)
+        assert app.problem is None and (folder / "mug.ply").is_file(), inside
+
+
+def test_open_field_tells_nothing_about_files_that_are_not_fields(app, tmp_path, small_field):
+    secret = tmp_path / "secret.txt"
+    secret.write_text("password")
+    unreadable = tmp_path / "locked.thgs"
+    unreadable.write_bytes(b"not a field")
+    answers = set()
+    for path in (secret, tmp_path / "missing.txt", tmp_path, unreadable, tmp_path / "no.thgs"):
+        app.field_path.value = str(path)
+        _press(app.open_button)
+        assert app.problem == f"{path}: is not a readable field file (.thgs)", app.problem
+        answers.add(app.problem.removeprefix(str(path)))
+    assert len(answers) == 1 and len(app.state) == 4000  # one answer; the field stays open
+    app.field_path.value = str(small_field)
+    _press(app.open_button)
+    assert app.problem is None
+
+
 def test_an_unwritable_export_folder_is_reported_and_the_server_keeps_running(app, tmp_path):
     blocker = tmp_path / "file"
     blocker.write_text("")
@@ -122,7 +158,7 @@ def test_a_field_of_another_scene_is_reported_and_another_field_can_be_opened(
         entrypoint(["synth", "synth-small", str(other), "--gaussians", "2000", "--views", "4"])
     except SystemExit as exc:  # pragma: no cover - the command returns normally
         assert not exc.code
-    app = start_viewer(small_field, scene=other, port=0)
+    app = start_viewer(small_field, scene=other, port=0, export_root=tmp_path)
     try:
         assert app.state is None
         assert "4000 Gaussians but the scene" in app.problem and "2000" in app.problem

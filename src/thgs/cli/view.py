@@ -26,6 +26,7 @@ def view(
     text_model: Path | None = None,
     device: Literal["auto", "cpu", "cuda", "mps"] = "auto",
     token: bool = True,
+    export_root: Path = Path("thgs-export"),
     verbose: bool = False,
 ) -> None:
     """Explore a semantic field in the browser: text queries, click-to-pick, climbing the
@@ -55,6 +56,8 @@ def view(
         token: require the secret token in the printed URL (as Jupyter does); --no-token
             lets anyone who can reach the port in (requests must still name this server in
             their Host and Origin headers).
+        export_root: the folder exports are confined to; the viewer's "Folder" names a folder
+            inside it.
         verbose: log what is loaded and every action.
     """
     from thgs.viewer.app import start_viewer, viewer_url
@@ -72,6 +75,7 @@ def view(
         config=config,
         device=device,
         token=token,
+        export_root=export_root,
     )
     try:
         count = f"{len(app.state):,} Gaussians" if app.state is not None else "no field open"

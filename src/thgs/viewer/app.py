@@ -20,7 +20,8 @@ from pathlib import Path
 import numpy as np
 
 from thgs.device import resolve_device
-from thgs.errors import ThgsError
+from thgs.errors import InputError, ThgsError
+from thgs.field import load_field
 from thgs.field_scene import field_text_encoder, open_field_scene
 from thgs.hierarchy.levels import LEVEL_NAMES
 from thgs.query import FieldQuery, default_threshold
@@ -51,6 +52,8 @@ class ViewerApp:
         text_model: the text model's local folder, instead of the one each field records
             (:func:`thgs.field_scene.field_text_encoder`).
         device: where the scene's Gaussians are rendered (:func:`thgs.device.resolve_device`).
+        export_root: the folder exports are confined to (default ``./thgs-export``): the
+            "Folder" control names a folder inside it, and anything resolving outside is refused.
     """
 
     def __init__(
@@ -61,8 +64,10 @@ class ViewerApp:
         scene: str | os.PathLike[str] | None = None,
         text_model: str | os.PathLike[str] | None = None,
         device: str = "auto",
+        export_root: str | os.PathLike[str] | None = None,
     ):
         self.server = server
+        self.export_root = Path(export_root or Path.cwd() / "thgs-export").resolve()
         self.config = config.check()
         self.scene_path = scene
         self.text_model = text_model
@@ -138,7 +143,9 @@ class ViewerApp:
             self.views = gui.add_dropdown("Go to view", ("—",), initial_value="—")
             self.mask_image = gui.add_image(np.ones((2, 2, 3)), label="mask", visible=False)
         with gui.add_folder("Export"):
-            self.export_folder = gui.add_text("Folder", str(Path.cwd() / "thgs-export"))
+            self.export_folder = gui.add_text(
+                "Folder", ".", hint=f"a folder inside {self.export_root}"
+            )
             self.export_button = gui.add_button("Export selection", icon="download")
             self.export_result = gui.add_markdown("")
         with gui.add_folder("Field", expand_by_default=False):
@@ -338,9 +345,26 @@ class ViewerApp:
                 client.camera.up_direction = pose.up
                 client.camera.fov = pose.fov
 
+    def export_target(self) -> Path:
+        """The folder the "Folder" control names, resolved inside :attr:`export_root`.
+
+        Raises:
+            InputError: it resolves outside the export root (an absolute path elsewhere, ``..``,
+                a link out).
+        """
+        folder = (self.export_root / self.export_folder.value.strip()).resolve()
+        if folder != self.export_root and self.export_root not in folder.parents:
+            raise InputError(
+                "Export folder",
+                f"{self.export_folder.value!r} is outside {self.export_root}; exports go inside "
+                "the folder named when the viewer started (thgs view --export-root)",
+            )
+        return folder
+
     def _on_export(self, state: ViewerState, event) -> None:
-        folder = Path(self.export_folder.value).expanduser()
+        folder = self.export_target()
         paths = state.export(folder)
+        self.problem = None
         self.export_result.content = f"wrote {', '.join(p.name for p in paths)} to `{folder}`"
         if event.client is not None:
             event.client.add_notification(
@@ -349,7 +373,7 @@ class ViewerApp:
 
     def _on_open(self, event) -> None:
         with self._reporting(event.client):
-            self.open(self.field_path.value)
+            self.open(checked_field_file(self.field_path.value))
 
     # Drawing ------------------------------------------------------------------------------------
 
@@ -460,12 +484,14 @@ def start_viewer(
     config: ViewerConfig = ViewerConfig(),
     device: str = "auto",
     token: bool = True,
+    export_root: str | os.PathLike[str] | None = None,
 ) -> ViewerApp:
     """Start a viser server on ``host``:``port`` and show ``field`` in it.
 
     The server answers only requests addressed to it (``Host`` and ``Origin``) and, with
     ``token`` (the default), carrying the secret made here (``app.token``; in
     :func:`viewer_url`): :mod:`thgs.viewer.guard`. ``token=False`` is the explicit opt-out.
+    Exports are confined to ``export_root`` (default ``./thgs-export``).
 
     The server always starts: a field that cannot be opened (unreadable, or built on other
     Gaussians than the scene) is reported in ``app.problem``, in the log and in the viewer, where
@@ -487,7 +513,14 @@ def start_viewer(
     # viser prints a banner (the CLI prints instead)
     with contextlib.redirect_stdout(io.StringIO()), guarded_websockets(guard):
         server = viser.ViserServer(host=host, port=port, label="thgs", verbose=False)
-    app = ViewerApp(server, config, scene=scene, text_model=text_model, device=device)
+    app = ViewerApp(
+        server,
+        config,
+        scene=scene,
+        text_model=text_model,
+        device=device,
+        export_root=export_root,
+    )
     app.token = guard.token
     bound = server.get_port()
     if port != 0 and bound != port:
@@ -499,6 +532,26 @@ def start_viewer(
         app.field_path.value = str(field)
         app.report(str(error))
     return app
+
+
+def checked_field_file(value: str) -> Path:
+    """The path the "Open field" control names, if it is a readable field file.
+
+    Whatever is wrong with a path that is not a field (missing, unreadable, a folder, another
+    kind of file) gets the same answer, so the control tells nothing about other files.
+
+    Raises:
+        InputError: not a ``.thgs`` file that reads as a field.
+    """
+    path = Path(value.strip()).expanduser()
+    refusal = InputError(path, "is not a readable field file (.thgs)")
+    if path.suffix != ".thgs":
+        raise refusal
+    try:
+        load_field(path)
+    except (ThgsError, OSError, ValueError):
+        raise refusal from None
+    return path
 
 
 def viewer_url(app: ViewerApp, host: str) -> str:
