@@ -612,3 +612,38 @@ def test_help_speaks_flags(capsys):
     # one vocabulary of selection modes
     for command in ("query", "export", "view"):
         assert "--mode {auto,paper,level,threshold}" in helps[command], command
+
+
+@pytest.mark.parametrize(
+    ("raised", "code", "line"),
+    [
+        (KeyboardInterrupt(), 130, "error: interrupted"),
+        (OSError(28, "No space left on device", "/data/out.thgs"),
+         1, "error: /data/out.thgs: No space left on device"),
+        (OSError(36, "File name too long"), 1, "error: File name too long"),
+    ],
+)  # fmt: skip
+def test_interrupts_and_system_errors_end_with_one_line(
+    shared_data, capsys, monkeypatch, raised, code, line
+):
+    import thgs.cli.scene
+
+    def fail(*args, **kwargs):
+        raise raised
+
+    monkeypatch.setattr(thgs.cli.scene, "load_scene", fail)
+    status, out, err = run(["info", str(shared_data / "ply_3dgs_train1000.ply")], capsys)
+    assert status == code and err.strip() == line and out == ""
+
+
+def test_interrupted_build_leaves_no_field(small_dataset, tmp_path, capsys, monkeypatch):
+    import thgs.pipeline
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(thgs.pipeline, "merge_levels", interrupted)
+    out = tmp_path / "field.thgs"
+    status, _, err = run(["build", str(small_dataset), "-o", str(out)], capsys)
+    assert status == 130 and err.strip().splitlines()[-1] == "error: interrupted"
+    assert list(tmp_path.iterdir()) == []

@@ -34,7 +34,9 @@ __all__ = [
 
 
 def entrypoint(argv: list[str] | None = None) -> None:
-    """Run the CLI; bad input ends with one line on stderr and exit status 2."""
+    """Run the CLI. Bad input ends with one `error:` line on stderr and exit status 2, an
+    operating-system error (a full disk, a name too long) with one such line and status 1, Ctrl-C
+    with `error: interrupted` and status 130; outputs are only ever whole or absent."""
     try:
         tyro.extras.subcommand_cli_from_dict(
             {
@@ -59,3 +61,12 @@ def entrypoint(argv: list[str] | None = None) -> None:
     except ThgsError as exc:
         error(str(exc))
         sys.exit(2)
+    except KeyboardInterrupt:
+        # every output is written to a temporary name and renamed when whole (thgs._atomic),
+        # so an interrupted command leaves nothing half-written behind
+        error("interrupted")
+        sys.exit(130)
+    except OSError as exc:  # disk full, a name too long, no permission, …
+        where = f"{exc.filename}: " if exc.filename else ""
+        error(f"{where}{exc.strerror or exc}")
+        sys.exit(1)
