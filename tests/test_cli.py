@@ -647,3 +647,48 @@ def test_interrupted_build_leaves_no_field(small_dataset, tmp_path, capsys, monk
     status, _, err = run(["build", str(small_dataset), "-o", str(out)], capsys)
     assert status == 130 and err.strip().splitlines()[-1] == "error: interrupted"
     assert list(tmp_path.iterdir()) == []
+
+
+def test_output_paths_are_checked_before_any_work(
+    small_dataset, small_field, tmp_path, capsys, monkeypatch
+):
+    import thgs.pipeline
+
+    def no_work(*args, **kwargs):
+        raise AssertionError("the work started before the output path was checked")
+
+    monkeypatch.setattr(thgs.pipeline, "lift_views", no_work)
+    folder = tmp_path / "taken"
+    folder.mkdir()
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    long_name = tmp_path / ("q" * 300)
+    cases = [
+        (["build", str(small_dataset), "-o", str(folder)], f"{folder}: is a folder"),
+        (["build", str(small_dataset), "-o", str(blocker / "a.thgs")], f"{blocker}: is a file"),
+        (["build", str(small_dataset), "-o", str(long_name)], "has a name longer than"),
+        (["eval", str(small_dataset), str(small_field), "-o", str(folder)], "is a folder"),
+        (["query", str(small_field), "mug", "-o", str(blocker)], f"{blocker}: is a file;"),
+        (
+            [
+                "pick",
+                str(small_field),
+                "--view",
+                "x",
+                "--pixel",
+                "1",
+                "1",
+                "-o",
+                str(blocker / "p"),
+            ],
+            "is a file, so",
+        ),
+        (["export", str(small_field), "--query", "mug", "-o", str(blocker)], "is a file;"),
+        (["demo", "-o", str(blocker)], "is a file;"),
+    ]
+    for argv, message in cases:
+        code, _, err = run(argv, capsys)
+        err = " ".join(err.split())
+        assert code == 2 and message in err and err.startswith("error:"), (argv, err)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["file", "taken"]
+    assert list(folder.iterdir()) == []

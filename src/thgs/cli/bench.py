@@ -9,6 +9,7 @@ from typing import Annotated, Literal
 import tyro
 
 from thgs.cli._console import StageBars, setup_logging, stage_progress, stdout
+from thgs.cli._outputs import check_output_folder
 
 __all__ = ["bench"]
 
@@ -59,6 +60,7 @@ def bench(
     from thgs.bench import BenchConfig, require_matplotlib, run_bench, write_bench
 
     setup_logging(verbose)
+    check_output_folder(out)
     require_matplotlib()
     config = BenchConfig(
         seeds=seeds,

@@ -11,6 +11,7 @@ import tyro
 from rich.table import Table
 
 from thgs.cli._console import StageBars, setup_logging, stage_progress, stdout, warn
+from thgs.cli._outputs import check_output_file, check_output_folder
 from thgs.errors import InputError, ThgsError
 from thgs.scene import Scene, load_scene
 
@@ -129,6 +130,7 @@ def build(
     from thgs.pipeline import PRESETS, build_field, read_field_config
 
     setup_logging(verbose)
+    check_output_file(out)
     if config is not None and preset is not None:
         raise ThgsError("pass either --preset or --config, not both")
     settings = read_field_config(config) if config is not None else PRESETS[preset or "lerf"]()
@@ -227,6 +229,7 @@ def demo(
     from thgs.demo import run_demo
 
     setup_logging(verbose)
+    check_output_folder(out)
     with stage_progress() as bar:
         report = run_demo(
             out,

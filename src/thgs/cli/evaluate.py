@@ -9,6 +9,7 @@ import tyro
 from rich.table import Table
 
 from thgs.cli._console import StageBars, setup_logging, stage_progress, stdout
+from thgs.cli._outputs import check_output_file
 from thgs.errors import InputError
 
 __all__ = ["evaluate", "evaluate_mean"]
@@ -77,6 +78,9 @@ def evaluate(
     from thgs.query import FieldQuery
 
     setup_logging(verbose)
+    if out is not None:
+        check_output_file(out)
+        check_output_file(out.with_suffix(".md"))
     for name in protocol:
         get_protocol(name)  # an unknown name stops here, before any loading
     ground_truth = find_ground_truth(

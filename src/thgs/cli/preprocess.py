@@ -8,6 +8,7 @@ from typing import Annotated, Literal
 import tyro
 
 from thgs.cli._console import settings_as_flags, setup_logging, stderr, stdout
+from thgs.cli._outputs import check_output_folder
 from thgs.errors import InputError
 from thgs.text import LANGSPLAT_SPACE
 
@@ -95,6 +96,8 @@ def preprocess(
     from thgs.scene import load_cameras
 
     setup_logging(verbose)
+    if out is not None:
+        check_output_folder(out)
     if resolution is not None and cameras is not None:
         raise InputError("--resolution", "give either --resolution or --cameras, not both")
     camera_set = None

@@ -9,6 +9,7 @@ import tyro
 from rich.table import Table
 
 from thgs.cli._console import settings_as_flags, setup_logging, stdout
+from thgs.cli._outputs import check_output_folder
 from thgs.errors import InputError, ThgsError
 
 __all__ = ["export", "pick", "query"]
@@ -129,6 +130,8 @@ def query(
     from thgs.results import write_query_results
 
     setup_logging(verbose)
+    if out is not None:
+        check_output_folder(out)
     if not texts:
         raise InputError("thgs query", "give at least one query text")
     if (views or relevancy) and out is None:
@@ -205,6 +208,8 @@ def pick(
     from thgs.views import pick as pick_pixel
 
     setup_logging(verbose)
+    if out is not None:
+        check_output_folder(out)
     if level not in (0, 1, 2, 3):
         raise InputError("--level", f"must be 0, 1, 2 or 3, got {level}")
     semantic, loaded = open_field_scene(field, scene, device=device)
@@ -281,6 +286,7 @@ def export(
     from thgs.results import write_query_selections
 
     setup_logging(verbose)
+    check_output_folder(out)
     if not query and color_level is None and not labels:
         raise InputError(
             "thgs export", "nothing to export: pass --query, --color-level or --labels"
