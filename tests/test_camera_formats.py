@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 
 import numpy as np
 import pycolmap
@@ -264,7 +265,11 @@ def test_colmap_bad_input(tmp_path, shared_data):
     for name in ("cameras.bin", "points3D.bin"):
         (broken / name).write_bytes((sample / name).read_bytes())
     (broken / "images.bin").write_bytes((sample / "images.bin").read_bytes()[:1000])
-    with pytest.raises(InputError, match="cannot read the COLMAP binary model"):
+    with pytest.raises(
+        InputError,
+        match=r"images\.bin: the COLMAP binary file is truncated or corrupt: entry 1 of 23 runs "
+        r"past the end of the file \(1000 bytes\)$",
+    ):
         read_colmap(broken)
     (broken / "cameras.bin").write_bytes(b"")
     with pytest.raises(InputError, match="empty or truncated") as info:
@@ -275,6 +280,41 @@ def test_colmap_bad_input(tmp_path, shared_data):
     (tmp_path / "cameras.txt").write_text(COLMAP_CAMERAS)
     with pytest.raises(InputError, match="no registered image"):
         read_colmap(tmp_path)
+
+
+@pytest.mark.parametrize("name", ["cameras.bin", "images.bin", "points3D.bin"])
+def test_colmap_truncated_binary_files(tmp_path, shared_data, name):
+    """Every cut of a binary model file is refused naming it, before pycolmap reads garbage ids
+    ("Rig with ID 1729189376 does not exist") or never returns (images.bin cut after 9 bytes,
+    points3D.bin after 64); so are bytes after the last entry and an unknown camera model."""
+    sample = shared_data / "colmap_small" / "sparse" / "0"
+    data = (sample / name).read_bytes()
+    counts = {"cameras.bin": 23, "images.bin": 23, "points3D.bin": 1443}
+    for cut in (9, 20, 64, 1000, len(data) // 2, len(data) - 1):
+        folder = tmp_path / f"cut{cut}"
+        shutil.copytree(sample, folder)
+        (folder / name).write_bytes(data[:cut])
+        with pytest.raises(
+            InputError,
+            match=rf"^{folder / name}: the COLMAP binary file is truncated or corrupt: entry "
+            rf"\d+ of {counts[name]} runs past the end of the file \({cut} bytes\)$",
+        ):
+            read_colmap(folder)
+    folder = tmp_path / "longer"
+    shutil.copytree(sample, folder)
+    (folder / name).write_bytes(data + b"\0" * 5)
+    with pytest.raises(
+        InputError,
+        match=rf"^{folder / name}: the COLMAP binary file is corrupt: 5 bytes follow its "
+        rf"{counts[name]} entries$",
+    ):
+        read_colmap(folder)
+    if name == "cameras.bin":
+        corrupt = bytearray(data)
+        corrupt[8 + 4 : 8 + 8] = (99).to_bytes(4, "little")  # the first camera's model id
+        (folder / name).write_bytes(bytes(corrupt))
+        with pytest.raises(InputError, match=r"entry 1 of 23 has unknown camera model id 99$"):
+            read_colmap(folder)
 
 
 def test_image_names_that_do_not_match(tmp_path, shared_data):

@@ -4,6 +4,7 @@ multi-GPU run, and their bad input."""
 
 from __future__ import annotations
 
+import logging
 import math
 
 import pytest
@@ -137,6 +138,7 @@ def test_thgs_info_reads_a_result_folder(tmp_path, capsys):
         ("colour", "neither sh0/shN nor colors"),
         ("int", "has dtype torch.int64"),
         ("nan", "NaN or infinite"),
+        ("huge", r"1 Gaussians have log-scales above 44\.4 \(up to 89; first: Gaussian 3\)"),
         ("empty", "holds no Gaussians"),
     ],
 )
@@ -153,6 +155,8 @@ def test_bad_checkpoints(tmp_path, content, message):
         splats["means"] = splats["means"].long()
     elif content == "nan":
         splats["opacities"][2] = math.nan
+    elif content == "huge":
+        splats["scales"][3, 0] = 89.0  # exp(89) overflows float32
     elif content == "empty":
         splats = {key: value[:0] for key, value in splats.items()}
     if isinstance(content, bytes):
@@ -162,6 +166,18 @@ def test_bad_checkpoints(tmp_path, content, message):
     with pytest.raises(InputError, match=message) as info:
         read_gsplat_checkpoint(path)
     assert str(info.value).startswith(str(path))
+
+
+def test_invisible_checkpoint_is_warned_about(tmp_path, caplog):
+    splats = splats_of(random_gaussians(5, sh_degree=1, normals=False))
+    splats["opacities"] = torch.full((5,), -20.0)
+    path = save(tmp_path / "ckpts" / "ckpt_7_rank0.pt", splats, step=7)
+    with caplog.at_level(logging.WARNING, logger="thgs"):
+        read_gsplat_checkpoint(path)
+    assert caplog.messages == [
+        f"{path}: all 5 Gaussians have an opacity below 1/255 (at most 2.06e-09), so nothing of "
+        "the scene is visible; opacities must be logits (sigmoid gives the opacity)"
+    ]
 
 
 def test_a_checkpoint_name_gsplat_does_not_write_needs_the_kind(tmp_path):

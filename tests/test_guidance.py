@@ -75,8 +75,9 @@ def test_write_read_round_trip(tmp_path):
     [
         (np.zeros((3, 2, 2)), 1, r"\[4, H, W\]"),
         (np.full((4, 2, 2), 0.5), 1, "whole numbers"),
-        (np.full((4, 2, 2), 3.0), 2, r"range over \[3, 3\] but there are 2"),
-        (np.full((4, 2, 2), -2.0), 2, "range over"),
+        (np.full((4, 2, 2), np.nan), 1, "16 mask ids are NaN or infinite"),
+        (np.full((4, 2, 2), 3.0), 2, r"mask id 3 has no feature row: the features hold 2 rows"),
+        (np.full((4, 2, 2), -5.0), 134, "mask id -5 is invalid: ids are feature rows"),
         (
             np.stack([np.full((2, 2), v, np.float32) for v in (1, 0, 2, 3)]),
             4,
@@ -102,14 +103,26 @@ def test_missing_truncated_and_nan(tmp_path):
         read_view_guidance(tmp_path, "v")
     bad = features(8)
     bad[3, 1] = np.nan
+    bad[5, 0] = np.inf
     np.save(tmp_path / "v_f.npy", bad)
-    with pytest.raises(InputError, match="NaN"):
+    path = tmp_path / "v_f.npy"
+    with pytest.raises(
+        InputError,
+        match=rf"^{path}: features have NaN or infinite values in 2 of 8 rows \(first: row 3\)",
+    ):
+        read_view_guidance(tmp_path, "v")
+    np.save(tmp_path / "v_f.npy", features(8)[:, 0])
+    with pytest.raises(
+        InputError,
+        match=rf"^{path}: expected an \[n, D\] array of floats \(one feature row per mask\), got "
+        r"a 1-D float32 array of shape \[8\]$",
+    ):
         read_view_guidance(tmp_path, "v")
 
 
 def test_failed_write_leaves_nothing(tmp_path):
     broken = ViewGuidance("x", np.full((4, 2, 2), 5, np.int32), features(2))
-    with pytest.raises(InputError, match="range over"):
+    with pytest.raises(InputError, match="mask id 5 has no feature row"):
         write_view_guidance(tmp_path, broken)
     assert list(tmp_path.iterdir()) == []
 

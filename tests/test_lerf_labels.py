@@ -121,7 +121,31 @@ def test_teatime_labels(shared_data):
                 "info": {"width": 10, "height": 5},
                 "objects": [{"category": "a", "segmentation": [[0, 0], [1, 1]]}],
             },
-            "≥ 3",
+            r"object 0: 'segmentation' must have at least 3 points, got 2$",
+        ),
+        (
+            {
+                "info": {"width": 10, "height": 5},
+                "objects": [{"category": "a", "segmentation": [[0, 0, 1], [1, 1, 1], [2, 0, 1]]}],
+            },
+            r"object 0: 'segmentation' must hold 2-D \[x, y\] points, got 3-D points$",
+        ),
+        (
+            {
+                "info": {"width": 10, "height": 5},
+                "objects": [{"category": "a", "segmentation": [1, 2, 3, 4, 5, 6]}],
+            },
+            r"must be a list of \[x, y\] points, got an array of shape \[6\]$",
+        ),
+        (
+            {
+                "info": {"width": 10, "height": 5},
+                "objects": [
+                    {"category": "a", "segmentation": [[0, 0], [2, 0], [2, 2]]},
+                    {"category": " ", "segmentation": [[0, 0], [2, 0], [2, 2]]},
+                ],
+            },
+            r"object 1: 'category' is empty; it is the text queried$",
         ),
     ],
 )
@@ -262,7 +286,10 @@ def test_bad_labels_are_not_written(tmp_path):
     triangle = np.array([[0.0, 0.0], [4.0, 0.0], [0.0, 2.0]])
     cases = [
         (FrameLabels("a", 10, 5, (LabelledObject("a", triangle, (0, 0, 4, 3)),)), "bounds"),
-        (FrameLabels("a", 10, 5, (LabelledObject("a", triangle[:2], (0, 0, 4, 0)),)), "≥ 3"),
+        (
+            FrameLabels("a", 10, 5, (LabelledObject("a", triangle[:2], (0, 0, 4, 0)),)),
+            "must have at least 3 points, got 2",
+        ),
         (FrameLabels("a", 0, 5, ()), "not positive"),
         (
             FrameLabels("a", 10, 5, (LabelledObject("a", triangle * np.nan, (0, 0, 4, 2)),)),

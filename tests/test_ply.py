@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+import logging
 
 import numpy as np
 import plyfile
@@ -111,9 +112,11 @@ def test_ascii_ply_reads(tmp_path):
     ),
 )
 def test_round_trip_any_finite_float(tmp_path_factory, values):
-    """Every finite float32, subnormals and −0.0 included, survives bit for bit."""
+    """Every finite float32, subnormals and −0.0 included, survives bit for bit (log-scales
+    up to 44, below which exp(2 · scale) is finite in float32)."""
     values = values.copy()
     values[:, 3:7][(values[:, 3:7] == 0).all(axis=1)] = 1.0  # no zero quaternion
+    values[:, 7:10] = np.minimum(values[:, 7:10], 44.0)  # a finite variance
     g = Gaussians(
         means=torch.from_numpy(values[:, 0:3].copy()),
         quats=torch.from_numpy(values[:, 3:7].copy()),
@@ -188,6 +191,15 @@ def without(columns, *names):
             },
             "zero quaternion, which is no rotation .first: Gaussian 1",
         ),
+        (  # finite log-scales whose exp(2 · scale) is inf in float32
+            lambda: {
+                **inria_columns(4),
+                "scale_2": np.array([0, 45, 0, 120], np.float32),
+            },
+            r": 2 Gaussians have log-scales above 44\.4 \(up to 120; first: Gaussian 1\), whose "
+            r"variance exp\(2 · scale\) overflows torch\.float32; scales must be log standard "
+            r"deviations$",
+        ),
     ],
 )
 def test_bad_properties(tmp_path, make, message):
@@ -196,6 +208,27 @@ def test_bad_properties(tmp_path, make, message):
     with pytest.raises(InputError, match=message) as info:
         read_ply(path)
     assert str(path) in str(info.value)
+
+
+def test_cli_prints_the_offending_values_in_brackets(tmp_path, capsys):
+    """The console's markup must not eat ``[nan, …]`` or ``[n, D]`` (it did: "value )")."""
+    from thgs.cli import entrypoint
+    from thgs.cli._console import error
+
+    columns = inria_columns(4)
+    columns["x"][1] = np.nan
+    path = tmp_path / "nan.ply"
+    raw_ply(path, columns)
+    with pytest.raises(SystemExit) as exit_info:
+        entrypoint(["info", str(path)])
+    assert exit_info.value.code == 2
+    value = [float(columns[name][1]) for name in ("x", "y", "z")]
+    assert " ".join(capsys.readouterr().err.split()) == (
+        f"error: {path}: means has NaN or infinite values in 1 Gaussians (first: Gaussian 1, "
+        f"value {value})"
+    )
+    error("f.npy: expected an [n, D] array of floats, got [4]")
+    assert capsys.readouterr().err == "error: f.npy: expected an [n, D] array of floats, got [4]\n"
 
 
 def test_bad_files(tmp_path):
@@ -216,6 +249,27 @@ def test_bad_files(tmp_path):
         with pytest.raises(InputError, match=message) as info:
             read_ply(path)
         assert str(info.value).startswith(f"{path}: ")
+
+
+def test_invisible_scene_is_warned_about(tmp_path, caplog):
+    """Every opacity below 1/255 (what the rasterizers skip): read, with a warning naming the
+    file; one visible Gaussian is enough to stay quiet."""
+    columns = inria_columns(6)
+    columns["opacity"] = np.full(6, -8.0, np.float32)  # sigmoid(-8) = 3.4e-4
+    path = tmp_path / "faint.ply"
+    raw_ply(path, columns)
+    with caplog.at_level(logging.WARNING, logger="thgs"):
+        assert len(read_ply(path)) == 6
+    assert caplog.messages == [
+        f"{path}: all 6 Gaussians have an opacity below 1/255 (at most 0.000335), so nothing of "
+        "the scene is visible; opacities must be logits (sigmoid gives the opacity)"
+    ]
+    caplog.clear()
+    columns["opacity"][4] = -5.0  # sigmoid(-5) = 0.0067 > 1/255
+    raw_ply(path, columns)
+    with caplog.at_level(logging.WARNING, logger="thgs"):
+        read_ply(path)
+    assert caplog.messages == []
 
 
 def test_no_vertex_element_and_no_rows(tmp_path):

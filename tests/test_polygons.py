@@ -179,3 +179,17 @@ def test_arbitrary_polygons_match_the_even_odd_reference_everywhere():
     far = np.array([[0.0, -9.0], [5.0, -9.0], [5.0, -2.0]])
     assert not rasterize_polygon(far, height, width).any()
     assert not rasterize_polygon(far + np.array([0.0, 40.0]), height, width).any()
+
+
+def test_rasterize_refuses_points_that_are_not_2d():
+    """3-D points were reshaped into a different 2-D polygon without a word."""
+    square = np.array([[1.0, 1.0, 0.0], [4.0, 1.0, 0.0], [4.0, 4.0, 0.0], [1.0, 4.0, 0.0]])
+    with pytest.raises(
+        InputError,
+        match=r"^rasterize_polygon: vertices must be \[K, 2\] \(x, y\) pixel coordinates, got "
+        r"shape \[4, 3\]$",
+    ):
+        rasterize_polygon(square, 6, 6)
+    with pytest.raises(InputError, match=r"got shape \[8\]$"):
+        rasterize_polygon(square[:, :2].ravel(), 6, 6)
+    assert not rasterize_polygon(square[:2, :2], 6, 6).any()  # fewer than 3 vertices: nothing

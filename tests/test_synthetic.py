@@ -517,6 +517,17 @@ def test_context_mix_moves_each_mask_feature_towards_its_parent_and_surroundings
         "frame_00001", max_id, hierarchy, encoder, OracleConfig(context_mix=0.0), 0
     )
     np.testing.assert_array_equal(plain.features, same.features)
-    for bad in ({"context_mix": -0.1}, {"context_mix": 1.5}, {"context_radius": 0}):
-        with pytest.raises(InputError, match="OracleConfig"):
+    for bad, message in [
+        ({"context_mix": -0.1}, r"^OracleConfig\.context_mix: must be in \[0, 1\], got -0\.1$"),
+        ({"context_mix": 1.5}, r"^OracleConfig\.context_mix: must be in \[0, 1\], got 1\.5$"),
+        ({"context_radius": 0}, r"^OracleConfig\.context_radius: must be ≥ 1 pixel, got 0$"),
+        ({"severity": -1.0}, r"^OracleConfig\.severity: must be a number ≥ 0, got -1\.0$"),
+        ({"severity": math.inf}, r"^OracleConfig\.severity: must be a number ≥ 0, got inf$"),
+        ({"feature_noise": math.nan}, r"^OracleConfig\.feature_noise: must be .* got nan$"),
+        (
+            {"rates": FaultRates(drop=-0.5)},
+            r"^OracleConfig\.rates\.drop: must be ≥ 0, got -0\.5$",
+        ),
+    ]:
+        with pytest.raises(InputError, match=message):
             OracleConfig(**bad)

@@ -30,6 +30,7 @@ from thgs.synthetic import (
     OracleConfig,
     SceneConfig,
     check_dataset_output,
+    evaluation_views,
     generate_scene,
     label_categories,
     render_view,
@@ -338,3 +339,41 @@ def test_modes_follow_the_umask_and_a_killed_run_is_cleaned_by_the_next(
     write_dataset(killed, scene, encoder, oracle=OracleConfig(seed=7), config=DATASET)
     assert _hidden(tmp_path) == []
     assert _digest(killed) == _digest(dataset)
+
+
+def test_evaluation_views_are_never_silently_fewer():
+    assert evaluation_views(24, 4) == [0, 8, 15, 23]
+    assert evaluation_views(24) == [0, 8, 15, 23]  # the default: 4
+    assert evaluation_views(2) == [0, 1]  # ... or every view of a smaller scene
+    assert evaluation_views(5, 0) == []
+    with pytest.raises(
+        InputError,
+        match=r"^DatasetConfig\.evaluation_views: 10 evaluation views asked of a scene with 4 "
+        r"views; give at most 4$",
+    ):
+        evaluation_views(4, 10)
+    with pytest.raises(InputError, match=r"^DatasetConfig\.evaluation_views: must be ≥ 0, got -1$"):
+        DatasetConfig(evaluation_views=-1)
+
+
+@pytest.mark.parametrize(
+    ("flags", "message"),
+    [
+        (["--severity", "-1"], "--severity: must be a number ≥ 0, got -1.0"),
+        (["--feature-noise", "nan"], "--feature-noise: must be a number ≥ 0, got nan"),
+        (["--context-mix", "2"], "--context-mix: must be in [0, 1], got 2.0"),
+        (
+            ["--views", "4", "--evaluation-views", "10"],
+            "--evaluation-views: 10 evaluation views asked of a scene with 4 views; give at most 4",
+        ),
+    ],
+)
+def test_cli_synth_names_the_bad_flag_before_any_work(tmp_path, capsys, flags, message):
+    """No ``ValueError: lam < 0`` traceback and no silently fewer labelled views: one ``error:``
+    line naming the flag, exit status 2, nothing written."""
+    out = tmp_path / "never"
+    with pytest.raises(SystemExit) as exit_info:
+        entrypoint(["synth", "synth-small", str(out), "--gaussians", "2000", *flags])
+    assert exit_info.value.code == 2
+    assert " ".join(capsys.readouterr().err.split()) == f"error: {message}"
+    assert list(tmp_path.iterdir()) == []

@@ -375,7 +375,7 @@ def run_demo(
     hierarchy = read_hierarchy(folder / "ground_truth.safetensors")
     truth = hierarchy.labels
     miou = tuple(matched_miou(field.labels[:, k], truth[:, k]) for k in (1, 2, 3))
-    view = evaluation_views(len(scene.cameras), 4)[0]
+    view = evaluation_views(len(scene.cameras))[0]
     rgb, _ = _render(scene, view, scene.gaussians.dc_colors().detach().cpu().numpy())
     levels_path = out / "levels.png"
     write_map_png(levels_path, _levels_picture(scene, field, view, rgb))

@@ -11,7 +11,7 @@ from typing import Annotated, Literal
 import tyro
 from rich.table import Table
 
-from thgs.cli._console import setup_logging, stderr, stdout
+from thgs.cli._console import settings_as_flags, setup_logging, stderr, stdout
 from thgs.scene import SceneSummary, load_scene, summarize
 
 __all__ = ["info", "synth"]
@@ -118,7 +118,7 @@ def synth(
     severity: float = 0.5,
     feature_noise: float = 0.5,
     context_mix: float = 0.0,
-    evaluation_views: int = 4,
+    evaluation_views: int | None = None,
     overwrite: bool = False,
     verbose: bool = False,
 ) -> None:
@@ -140,7 +140,8 @@ def synth(
         feature_noise: noise on the oracle's text-embedding features.
         context_mix: how much a mask's feature looks like its parent's and its surroundings'
             names, as CLIP crops do (0 = name-perfect, up to 1; docs/synthetic.md).
-        evaluation_views: views that get LERF-OVS / 3DOVS labels.
+        evaluation_views: views that get LERF-OVS / 3DOVS labels (default 4, or every view if
+            fewer; more than the scene's views is an error).
         overwrite: replace an existing dataset folder that thgs wrote (its synthetic.json
             marks it; a folder holding other files, the current folder or one holding it is
             refused, and nothing is deleted).
@@ -155,6 +156,7 @@ def synth(
         generate_scene,
         write_dataset,
     )
+    from thgs.synthetic import evaluation_views as spread_views
     from thgs.synthetic import preset as scene_preset
     from thgs.text import MiniLMEncoder
 
@@ -166,12 +168,15 @@ def synth(
     if views is not None:
         overrides["views"] = views
     config = scene_preset(preset, **overrides)
+    with settings_as_flags("severity", "feature_noise", "context_mix", "evaluation_views"):
+        oracle = OracleConfig(
+            severity=severity, feature_noise=feature_noise, context_mix=context_mix, seed=seed
+        )
+        dataset_config = DatasetConfig(evaluation_views=evaluation_views)
+        spread_views(config.views, evaluation_views)
     start = time.perf_counter()
     scene = generate_scene(config)
     encoder = MiniLMEncoder()
-    oracle = OracleConfig(
-        severity=severity, feature_noise=feature_noise, context_mix=context_mix, seed=seed
-    )
     with Progress(console=stderr, transient=True) as bar:
         task = bar.add_task("rendering views", total=len(scene.cameras))
         summary = write_dataset(
@@ -179,7 +184,7 @@ def synth(
             scene,
             encoder,
             oracle=oracle,
-            config=DatasetConfig(evaluation_views=evaluation_views),
+            config=dataset_config,
             overwrite=overwrite,
             progress=lambda done, total: bar.update(task, completed=done),
         )

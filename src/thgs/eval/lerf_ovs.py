@@ -108,8 +108,9 @@ def read_lerf_labels(path: str | os.PathLike[str]) -> FrameLabels:
 
     Raises:
         InputError: unreadable JSON, missing ``info`` size or ``objects``, an object without a
-            category, with a polygon of fewer than 3 finite points or a ``group`` that is not an
-            integer (a missing or null ``group`` reads as 0, as ISAT does).
+            category or with an empty one, with a polygon that is not ≥ 3 finite 2-D [x, y]
+            points or a ``group`` that is not an integer (a missing or null ``group`` reads as
+            0, as ISAT does).
     """
     path = Path(path)
     document = load_json(path)
@@ -128,12 +129,15 @@ def read_lerf_labels(path: str | os.PathLike[str]) -> FrameLabels:
         where = f"object {index}"
         if not isinstance(entry, dict) or not isinstance(entry.get("category"), str):
             raise InputError(path, f"{where} has no 'category' string")
+        if not entry["category"].strip():
+            raise InputError(path, f"{where}: 'category' is empty; it is the text queried")
         try:
             polygon = np.asarray(entry.get("segmentation"), dtype=np.float64)
         except (TypeError, ValueError) as exc:
             raise InputError(path, f"{where}: 'segmentation' is not a list of points") from exc
-        if polygon.ndim != 2 or polygon.shape[1] != 2 or len(polygon) < 3:
-            raise InputError(path, f"{where}: 'segmentation' must be ≥ 3 [x, y] points")
+        problem = _polygon_problem(polygon)
+        if problem is not None:
+            raise InputError(path, f"{where}: 'segmentation' {problem}")
         if not np.isfinite(polygon).all():
             raise InputError(path, f"{where}: 'segmentation' has NaN or infinite values")
         bbox = entry.get("bbox")
@@ -150,6 +154,17 @@ def read_lerf_labels(path: str | os.PathLike[str]) -> FrameLabels:
         box = tuple(float(v) for v in bbox)
         objects.append(LabelledObject(entry["category"], polygon, box, group))  # type: ignore[arg-type]
     return FrameLabels(str(info.get("name", path.stem)), int(width), int(height), tuple(objects))
+
+
+def _polygon_problem(polygon: np.ndarray) -> str | None:
+    """What is wrong with a polygon that should be [P ≥ 3, 2] (x, y) pixel coordinates, or None."""
+    if polygon.ndim != 2:
+        return f"must be a list of [x, y] points, got an array of shape {list(polygon.shape)}"
+    if polygon.shape[1] != 2:
+        return f"must hold 2-D [x, y] points, got {polygon.shape[1]}-D points"
+    if len(polygon) < 3:
+        return f"must have at least 3 points, got {len(polygon)}"
+    return None
 
 
 def _shoelace_area(polygon: np.ndarray) -> float:
@@ -187,8 +202,9 @@ def write_lerf_labels(path: str | os.PathLike[str], labels: FrameLabels) -> None
         if not isinstance(obj.category, str):
             raise InputError(source, f"object {index}: category {obj.category!r} is not a string")
         polygon = np.asarray(obj.polygon, dtype=np.float64)
-        if polygon.ndim != 2 or polygon.shape[1] != 2 or len(polygon) < 3:
-            raise InputError(source, f"object {index}: the polygon must be ≥ 3 [x, y] points")
+        problem = _polygon_problem(polygon)
+        if problem is not None:
+            raise InputError(source, f"object {index}: the polygon {problem}")
         if not np.isfinite(polygon).all():
             raise InputError(source, f"object {index}: the polygon has NaN or infinite values")
         low, high = polygon.min(axis=0), polygon.max(axis=0)

@@ -23,9 +23,17 @@ def rasterize_polygon(vertices: np.ndarray, height: int, width: int) -> np.ndarr
 
     A pixel centre exactly on a left or top edge counts as inside, on a right or bottom edge as
     outside, so polygons that tile the plane never share a pixel and an axis-aligned rectangle
-    with integer corners covers exactly its area in pixels.
+    with integer corners covers exactly its area in pixels. Fewer than 3 vertices cover nothing.
+
+    Raises:
+        InputError: ``vertices`` is not [K, 2] (3-D points, or a flat list of coordinates).
     """
-    vertices = np.asarray(vertices, dtype=np.float64).reshape(-1, 2)
+    vertices = np.asarray(vertices, dtype=np.float64)
+    if vertices.ndim != 2 or vertices.shape[1] != 2:
+        raise InputError(
+            "rasterize_polygon",
+            f"vertices must be [K, 2] (x, y) pixel coordinates, got shape {list(vertices.shape)}",
+        )
     mask = np.zeros((height, width), dtype=bool)
     if len(vertices) < 3:
         return mask

@@ -83,8 +83,11 @@ class ViewGuidance:
         ids = np.unique(self.segments[level])
         return ids[ids >= 0]
 
-    def check(self, source: str = "ViewGuidance") -> ViewGuidance:
-        """Verify the layout; raise :class:`InputError` naming ``source``.
+    def check(
+        self, source: str = "ViewGuidance", features_source: str | None = None
+    ) -> ViewGuidance:
+        """Verify the layout; raise :class:`InputError` naming ``source`` (``features_source``,
+        if given, for problems of the features alone).
 
         Invariants: segments [4, H, W] integer-valued ≥ −1 and < n; features [n, D] finite; the
         ids of each level come after those of the previous levels (LangSplat's offsets).
@@ -94,12 +97,23 @@ class ViewGuidance:
         if self.features.ndim != 2:
             raise InputError(source, f"features must be [n, D], got {list(self.features.shape)}")
         n = self.features.shape[0]
-        if not np.isfinite(self.features).all():
-            raise InputError(source, "features have NaN or infinite values")
-        low, high = int(self.segments.min()), int(self.segments.max())
-        if low < -1 or high >= n:
+        bad = ~np.isfinite(self.features).all(axis=1)
+        if bad.any():
             raise InputError(
-                source, f"mask ids range over [{low}, {high}] but there are {n} feature rows"
+                features_source or source,
+                f"features have NaN or infinite values in {int(bad.sum())} of {n} rows "
+                f"(first: row {int(np.flatnonzero(bad)[0])})",
+            )
+        low, high = int(self.segments.min()), int(self.segments.max())
+        if low < -1:
+            raise InputError(
+                source,
+                f"mask id {low} is invalid: ids are feature rows (≥ 0), or −1 for no mask",
+            )
+        if high >= n:
+            raise InputError(
+                source,
+                f"mask id {high} has no feature row: the features hold {n} rows (ids 0 … {n - 1})",
             )
         previous_max = -1
         for level, name in enumerate(LEVELS):
@@ -145,17 +159,21 @@ def read_view_guidance(folder: str | os.PathLike[str], stem: str) -> ViewGuidanc
         )
     if not np.issubdtype(segments.dtype, np.number):
         raise InputError(segments_path, f"expected numbers, got dtype {segments.dtype}")
+    if not np.isfinite(segments).all():
+        count = int((~np.isfinite(segments)).sum())
+        raise InputError(segments_path, f"{count} mask ids are NaN or infinite")
     if not np.array_equal(segments, np.round(segments)):
         raise InputError(segments_path, "mask ids must be whole numbers")
     if features.ndim != 2 or not np.issubdtype(features.dtype, np.floating):
         raise InputError(
             features_path,
-            f"expected float [n, D] features, got {features.dtype} {list(features.shape)}",
+            f"expected an [n, D] array of floats (one feature row per mask), got a "
+            f"{features.ndim}-D {features.dtype} array of shape {list(features.shape)}",
         )
     guidance = ViewGuidance(
         stem, segments.astype(np.int32), features.astype(np.float32, copy=False)
     )
-    return guidance.check(source=str(segments_path))
+    return guidance.check(source=str(segments_path), features_source=str(features_path))
 
 
 def write_view_guidance(folder: str | os.PathLike[str], guidance: ViewGuidance) -> None:

@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import logging
 import os
+import struct
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -42,14 +44,72 @@ def _intrinsics(model: str, params: np.ndarray) -> tuple[list[list[float]], np.n
     return [[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], coeffs
 
 
+def _camera_sizes(data: bytes, offset: int) -> int:
+    """The size of the ``cameras.bin`` entry at ``offset``: camera id (uint32), model id (int32),
+    width and height (uint64), then the model's parameters (float64)."""
+    import pycolmap
+
+    (model_id,) = struct.unpack_from("<i", data, offset + 4)
+    try:
+        params = len(pycolmap.Camera.create_from_model_id(1, model_id, 1.0, 1, 1).params)
+    except (ValueError, TypeError, RuntimeError) as exc:
+        raise ValueError(f"unknown camera model id {model_id}") from exc
+    return 24 + 8 * params
+
+
+def _image_sizes(data: bytes, offset: int) -> int:
+    """The size of the ``images.bin`` entry at ``offset``: image id (uint32), quaternion and
+    translation (7 float64), camera id (uint32), NUL-terminated name, point count (uint64) and
+    that many (x, y float64, point id uint64)."""
+    end = data.find(b"\0", offset + 64)
+    if end < 0:  # the name runs past the end of the file
+        return len(data) + 1 - offset
+    (points,) = struct.unpack_from("<Q", data, end + 1)
+    return end + 9 - offset + 24 * points
+
+
+def _point_sizes(data: bytes, offset: int) -> int:
+    """The size of the ``points3D.bin`` entry at ``offset``: point id (uint64), xyz (3 float64),
+    colour (3 uint8), error (float64), track length (uint64) and that many (uint32, uint32)."""
+    (track,) = struct.unpack_from("<Q", data, offset + 43)
+    return 51 + 8 * track
+
+
+def _check_binary(file: Path, entry_size: Callable[[bytes, int], int]) -> None:
+    """Walk a COLMAP binary file entry by entry (its uint64 count, then the entries) and refuse
+    one that ends early or goes on after its last entry. pycolmap does not check this: a
+    truncated file can make it read garbage ids ("Rig with ID … does not exist") or never
+    return."""
+    data = file.read_bytes()
+    if len(data) < 8:
+        raise InputError(file, "the COLMAP binary file is empty or truncated")
+    (count,) = struct.unpack_from("<Q", data, 0)
+    offset = 8
+    for index in range(count):
+        where = f"the COLMAP binary file is truncated or corrupt: entry {index + 1} of {count}"
+        try:
+            offset += entry_size(data, offset)
+        except struct.error:
+            offset = len(data) + 1
+        except ValueError as exc:
+            raise InputError(file, f"{where} has {exc}") from exc
+        if offset > len(data):
+            raise InputError(file, f"{where} runs past the end of the file ({len(data)} bytes)")
+    if offset != len(data):
+        raise InputError(
+            file,
+            f"the COLMAP binary file is corrupt: {len(data) - offset} bytes follow its "
+            f"{count} entries",
+        )
+
+
 def _model_files(sparse_dir: Path) -> str:
     for ext in (".bin", ".txt"):
         files = [sparse_dir / f"{stem}{ext}" for stem in ("cameras", "images", "points3D")]
         if all(file.is_file() for file in files):
-            if ext == ".bin":  # a binary model file starts with its uint64 entry count
-                for file in files:
-                    if file.stat().st_size < 8:
-                        raise InputError(file, "the COLMAP binary file is empty or truncated")
+            if ext == ".bin":
+                for file, walk in zip(files, (_camera_sizes, _image_sizes, _point_sizes)):
+                    _check_binary(file, walk)
             return "binary" if ext == ".bin" else "text"
     raise InputError(
         sparse_dir,

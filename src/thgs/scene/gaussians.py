@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass, field
 from typing import Literal
@@ -16,6 +17,8 @@ __all__ = ["SH_C0", "Gaussians", "quaternions_to_matrices"]
 
 SH_C0 = 0.28209479177387814
 """Degree-0 real spherical-harmonics constant: colour = 0.5 + SH_C0 · DC coefficient."""
+
+logger = logging.getLogger(__name__)
 
 _SH_COEFFS_PER_DEGREE = {1: 0, 4: 1, 9: 2, 16: 3}
 
@@ -158,7 +161,9 @@ class Gaussians:
         """Verify shapes, dtypes, devices and values; raise :class:`InputError` naming ``source``.
 
         Invariants: N consistent across fields; scales [N, 2] or [N, 3]; sh [N, K, 3] with K in
-        {1, 4, 9, 16}; one floating dtype and one device; every value finite; no zero quaternion.
+        {1, 4, 9, 16}; one floating dtype and one device; every value finite; log-scales small
+        enough that the variance ``exp(2 · scale)`` is finite in their dtype (≤ 44.36 in
+        float32); no zero quaternion.
         Returns ``self`` so that it can be chained. A check that passed is remembered until a
         tensor is modified in place (rendering checks its Gaussians at every call; a scan of
         every value of 1M Gaussians takes about half a second).
@@ -221,6 +226,17 @@ class Gaussians:
                     f"{name} has NaN or infinite values in {int(bad.sum())} Gaussians "
                     f"(first: Gaussian {first}, value {tensor[first].tolist()})",
                 )
+        limit = math.log(torch.finfo(self.scales.dtype).max) / 2
+        huge = (self.scales > limit).any(dim=-1)
+        if bool(huge.any()):
+            first = int(huge.nonzero()[0, 0])
+            raise InputError(
+                source,
+                f"{int(huge.sum())} Gaussians have log-scales above {limit:.1f} (up to "
+                f"{float(self.scales.max()):.4g}; first: Gaussian {first}), whose variance "
+                f"exp(2 · scale) overflows {self.scales.dtype}; scales must be log standard "
+                "deviations",
+            )
         zero = (self.quats == 0).all(dim=-1)
         if bool(zero.any()):
             first = int(zero.nonzero()[0, 0])
@@ -234,3 +250,22 @@ class Gaussians:
                 raise InputError(source, f"extra property {name!r} must be [N], got {values.shape}")
         object.__setattr__(self, "_checked", self.state_key())
         return self
+
+
+VISIBLE_OPACITY = 1 / 255
+"""The opacity below which 3DGS's and gsplat's rasterizers skip a Gaussian's contribution."""
+
+
+def warn_if_invisible(gaussians: Gaussians, source: str) -> None:
+    """Log a warning naming ``source`` when every Gaussian's opacity is below
+    :data:`VISIBLE_OPACITY`: nothing of the scene would show in a render and no mask could be
+    lifted onto it (the opacities are probably not logits, or the file is not a trained scene)."""
+    opacity = torch.sigmoid(gaussians.opacities)
+    if len(gaussians) and bool((opacity < VISIBLE_OPACITY).all()):
+        logger.warning(
+            "%s: all %d Gaussians have an opacity below 1/255 (at most %.3g), so nothing of the "
+            "scene is visible; opacities must be logits (sigmoid gives the opacity)",
+            source,
+            len(gaussians),
+            float(opacity.max()),
+        )

@@ -41,7 +41,7 @@ from typing import Literal
 import torch
 
 from thgs.errors import InputError
-from thgs.scene.gaussians import SH_C0, Gaussians
+from thgs.scene.gaussians import SH_C0, Gaussians, warn_if_invisible
 
 __all__ = ["find_gsplat_checkpoint", "gsplat_kind", "read_gsplat_checkpoint"]
 
@@ -220,4 +220,6 @@ def read_gsplat_checkpoint(
         )
     if len(gaussians) == 0:
         raise InputError(path, "the checkpoint holds no Gaussians")
-    return gaussians.check(source=str(path))
+    gaussians.check(source=str(path))
+    warn_if_invisible(gaussians, str(path))
+    return gaussians

@@ -23,7 +23,7 @@ import torch
 
 from thgs._atomic import atomic_output
 from thgs.errors import InputError
-from thgs.scene.gaussians import Gaussians
+from thgs.scene.gaussians import Gaussians, warn_if_invisible
 
 __all__ = ["read_ply", "write_ply"]
 
@@ -149,6 +149,7 @@ def read_ply(path: str | os.PathLike[str]) -> Gaussians:
         extras={name: np.ascontiguousarray(data[name]) for name in names if name not in standard},
     )
     gaussians.check(source=str(path))
+    warn_if_invisible(gaussians, str(path))
     logger.debug("%s: %d Gaussians, %s, SH degree %d", path, n, gaussians.kind, gaussians.sh_degree)
     return gaussians
 

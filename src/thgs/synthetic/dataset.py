@@ -97,17 +97,25 @@ class DatasetConfig:
     """How the dataset is written.
 
     Attributes:
-        evaluation_views: how many views (evenly spread) get LERF-OVS and 3DOVS labels.
+        evaluation_views: how many views (evenly spread) get LERF-OVS and 3DOVS labels; None:
+            :data:`EVALUATION_VIEWS`, or every view of a scene with fewer. More than the scene's
+            views is an error (never silently fewer).
         min_label_pixels: a node must cover at least this many pixels of a frame to be labelled
             in it.
         jpeg_quality: quality of the RGB images.
         background: RGB in [0, 1] behind the scene.
     """
 
-    evaluation_views: int = 4
+    evaluation_views: int | None = None
     min_label_pixels: int = 20
     jpeg_quality: int = 95
     background: tuple[float, float, float] = (0.80, 0.82, 0.86)
+
+    def __post_init__(self) -> None:
+        if self.evaluation_views is not None and self.evaluation_views < 0:
+            raise InputError(
+                "DatasetConfig.evaluation_views", f"must be ≥ 0, got {self.evaluation_views}"
+            )
 
 
 @dataclass(frozen=True)
@@ -135,11 +143,30 @@ def render_view(
     return rgb, out.max_id.numpy()
 
 
-def evaluation_views(count: int, evaluate: int) -> list[int]:
-    """``evaluate`` view indices spread evenly over ``count`` views, first and last included."""
-    if evaluate <= 0:
+EVALUATION_VIEWS = 4
+"""How many views get labels by default (:attr:`DatasetConfig.evaluation_views`)."""
+
+
+def evaluation_views(count: int, evaluate: int | None = None) -> list[int]:
+    """``evaluate`` view indices spread evenly over ``count`` views, first and last included.
+
+    ``evaluate`` None takes :data:`EVALUATION_VIEWS`, or all ``count`` views if fewer.
+
+    Raises:
+        InputError: ``evaluate`` is negative or more than ``count`` (named as
+            ``DatasetConfig.evaluation_views``).
+    """
+    if evaluate is None:
+        evaluate = min(EVALUATION_VIEWS, count)
+    if evaluate < 0 or evaluate > count:
+        raise InputError(
+            "DatasetConfig.evaluation_views",
+            f"{evaluate} evaluation views asked of a scene with {count} views; give at most "
+            f"{count}",
+        )
+    if evaluate == 0:
         return []
-    return sorted({int(i) for i in np.round(np.linspace(0, count - 1, min(evaluate, count)))})
+    return sorted({int(i) for i in np.round(np.linspace(0, count - 1, evaluate))})
 
 
 def label_categories(
@@ -374,7 +401,7 @@ def _write(
         "version": "1",
         "scene": asdict(scene.config),
         "oracle": asdict(oracle),
-        "dataset": asdict(config),
+        "dataset": asdict(replace(config, evaluation_views=len(evaluated))),
         "embedding_space": encoder.space,
         "embedding_dim": encoder.dim,
         "hierarchy_levels": list(LEVEL_NAMES[1:]),

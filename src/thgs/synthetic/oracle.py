@@ -22,7 +22,7 @@ wins. Each mask's feature is the text embedding of its name plus Gaussian noise,
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 from scipy import ndimage
@@ -103,13 +103,20 @@ class OracleConfig:
     seed: int = 0
 
     def __post_init__(self) -> None:
+        for name in ("severity", "feature_noise"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0.0):
+                raise InputError(f"OracleConfig.{name}", f"must be a number ≥ 0, got {value}")
+        for name, value in asdict(self.rates).items():
+            if not (math.isfinite(value) and value >= 0.0):
+                raise InputError(f"OracleConfig.rates.{name}", f"must be ≥ 0, got {value}")
         if not 0.0 <= self.context_mix <= 1.0:
             raise InputError(
-                "OracleConfig", f"context_mix must be in [0, 1], got {self.context_mix}"
+                "OracleConfig.context_mix", f"must be in [0, 1], got {self.context_mix}"
             )
         if self.context_radius < 1:
             raise InputError(
-                "OracleConfig", f"context_radius must be ≥ 1 pixel, got {self.context_radius}"
+                "OracleConfig.context_radius", f"must be ≥ 1 pixel, got {self.context_radius}"
             )
 
     def rate(self, name: str) -> float:
