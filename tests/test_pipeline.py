@@ -183,7 +183,7 @@ def test_bad_scenes_and_guidance_are_named(plane):
     outside = guidance[2].segments.copy()
     outside[1, 0, 0] = len(guidance[2].features)
     broken = replace(guidance[2], segments=outside)
-    with pytest.raises(InputError, match=r"view_2.*feature rows"):
+    with pytest.raises(InputError, match=r"view_2.*no feature row"):
         partition_scene(scene, [*guidance[:2], broken, *guidance[3:]])
     coarse = replace(guidance[0], segments=guidance[0].segments[:, ::2, ::2])
     with pytest.raises(InputError, match="--resize"):

@@ -39,6 +39,8 @@ def evaluate(
     scene: Path | None = None,
     text_model: Path | None = None,
     device: Literal["auto", "cpu", "cuda", "mps"] = "auto",
+    other_scene: bool = False,
+    rescale_labels: bool = False,
     verbose: bool = False,
 ) -> None:
     """Score a semantic field against a benchmark's ground truth.
@@ -67,10 +69,14 @@ def evaluate(
             for a field that records none, the Hugging Face cache).
         device: where to render: auto (a CUDA GPU if torch sees one, else MPS, else the CPU),
             cpu, cuda or mps (docs/rendering.md).
+        other_scene: score DATASET even though its cameras are not the field's scene's
+            (refused by default: its ground truth belongs to another capture).
+        rescale_labels: stretch 2-D labels whose aspect ratio is not their camera's (refused by
+            default; labels of the same aspect ratio at another size are always scaled).
         verbose: log what is loaded and how long it takes.
     """
     from thgs._atomic import atomic_output
-    from thgs.eval.dataset import evaluate_dataset, find_ground_truth
+    from thgs.eval.dataset import check_ground_truth_scene, evaluate_dataset, find_ground_truth
     from thgs.eval.protocols import get_protocol, sources
     from thgs.export import write_json
     from thgs.field_scene import field_text_encoder, open_field_scene
@@ -94,6 +100,8 @@ def evaluate(
             "--segmentations or --scannet",
         )
     semantic, loaded = open_field_scene(field, scene, device=device)
+    if not other_scene:
+        check_ground_truth_scene(dataset, loaded.cameras)
     encoder = field_text_encoder(semantic, field, text_model)
     engine = FieldQuery(semantic, encoder, source=str(field))
     with stage_progress() as bar:
@@ -106,6 +114,7 @@ def evaluate(
             scannet_level=scannet_level,
             raster=lifted_raster(semantic, str(field)),
             progress=StageBars(bar),
+            rescale_labels=rescale_labels,
         )
     out = out if out is not None else field.with_suffix(".eval.json")
     document = report.to_json()

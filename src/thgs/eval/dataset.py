@@ -38,11 +38,13 @@ from thgs.eval.evaluate import ProtocolResult
 from thgs.eval.protocols import EvalContext, get_protocol, protocol_names, source_names, sources
 from thgs.query import FieldQuery
 from thgs.render import RasterConfig
-from thgs.scene import Cameras, Gaussians
+from thgs.scene import Cameras, Gaussians, load_cameras
+from thgs.scene.loader import camera_disagreement
 
 __all__ = [
     "EvalReport",
     "GroundTruth",
+    "check_ground_truth_scene",
     "evaluate_dataset",
     "find_ground_truth",
     "mean_over_scenes",
@@ -159,6 +161,30 @@ class EvalReport:
         return "\n".join(lines)
 
 
+def check_ground_truth_scene(dataset: str | os.PathLike[str], cameras: Cameras | None) -> None:
+    """Refuse a dataset whose cameras are not the field's scene's: when ``dataset`` holds
+    cameras (:func:`thgs.scene.load_cameras`) and ``cameras`` are known, the images they share
+    must exist and agree (:func:`thgs.scene.loader.camera_disagreement`, intrinsics and camera
+    centres up to a similarity). A dataset without cameras (labels only) is not checked.
+
+    Raises:
+        InputError: the dataset is another capture (``thgs eval --other-scene`` skips this).
+    """
+    if cameras is None:
+        return
+    try:
+        theirs = load_cameras(dataset)[0]
+    except InputError:
+        return
+    problem = camera_disagreement(theirs, cameras, subset=True)
+    if problem is not None:
+        raise InputError(
+            dataset,
+            f"is not the scene the field was built on: {problem}; its ground truth would be "
+            "scored against another capture (--other-scene scores it anyway)",
+        )
+
+
 def evaluate_dataset(
     ground_truth: GroundTruth,
     engine: FieldQuery,
@@ -169,6 +195,7 @@ def evaluate_dataset(
     scannet_level: int = 3,
     raster: RasterConfig = RasterConfig(),
     progress: Callable[[str, int, int], None] | None = None,
+    rescale_labels: bool = False,
 ) -> EvalReport:
     """Run ``protocols`` (default: every one whose ground truth is present).
 
@@ -182,6 +209,9 @@ def evaluate_dataset(
         raster: how the 2D protocols render views: the settings the field was lifted with
             (:func:`thgs.pipeline.lifted_raster`), so that masks are rendered as they were lifted.
         progress: ``progress(protocol, done, total)`` per evaluated frame.
+        rescale_labels: score 2-D labels whose aspect ratio is not their camera's by stretching
+            them (by default that is refused: they belong to another capture). Labels of the
+            camera's aspect ratio at another size are always scaled to it.
 
     Raises:
         InputError: an unknown protocol, one whose ground truth is missing, or a 2D protocol
@@ -218,7 +248,7 @@ def evaluate_dataset(
             path,
             scene_name=ground_truth.scene_name,
             raster=raster,
-            options={"scannet_level": scannet_level},
+            options={"scannet_level": scannet_level, "rescale_labels": rescale_labels},
             progress=step,
             shared=shared,
         )

@@ -164,6 +164,7 @@ def evaluate_lerf(
     prompts: Sequence[str] | None = None,
     raster: RasterConfig = RasterConfig(),
     progress: Progress | None = None,
+    rescale_labels: bool = False,
 ) -> ProtocolResult:
     """The THGS LERF-OVS protocol (``lerf``), or OpenGaussian's with ``mask_threshold`` 0.7.
 
@@ -176,6 +177,8 @@ def evaluate_lerf(
         protocol: the name recorded in the result.
         mask_threshold: rendered opacity above which a pixel is predicted.
         prompts: evaluate only these categories (OpenGaussian's lists); default all.
+        rescale_labels: stretch labels of another aspect ratio than their camera's
+            (:func:`check_label_size`).
 
     Returns:
         metrics ``miou`` and ``accuracy`` (pixel accuracy), each the mean over frames of the
@@ -187,6 +190,12 @@ def evaluate_lerf(
         if texts:
             camera = cameras.select([find_view(cameras, stem, f"label file {stem}.json")])
             height, width = int(camera.heights[0]), int(camera.widths[0])
+            check_label_size(
+                f"label file {stem}.json",
+                (frame.width, frame.height),
+                (width, height),
+                rescale_labels,
+            )
             selected = engine.selected(texts)
             masks = selection_masks(
                 gaussians, camera, selected, threshold=mask_threshold, config=raster
@@ -227,8 +236,10 @@ def evaluate_lerf_langsplat(
     mask_threshold: float = 0.4,
     raster: RasterConfig = RasterConfig(),
     progress: Progress | None = None,
+    rescale_labels: bool = False,
 ) -> ProtocolResult:
-    """LangSplat's 2D LERF-OVS protocol on rendered relevancy maps.
+    """LangSplat's 2D LERF-OVS protocol on rendered relevancy maps (labels of another aspect
+    ratio than their camera's refused unless ``rescale_labels``: :func:`check_label_size`).
 
     Per frame and prompt, each level's per-Gaussian relevancy is rendered into the view
     (:func:`thgs.views.relevancy_map`); :func:`thgs.eval.rules.langsplat_query` chooses a
@@ -245,6 +256,9 @@ def evaluate_lerf_langsplat(
         texts = list(frame.categories)
         camera = cameras.select([find_view(cameras, stem, f"label file {stem}.json")])
         height, width = int(camera.heights[0]), int(camera.widths[0])
+        check_label_size(
+            f"label file {stem}.json", (frame.width, frame.height), (width, height), rescale_labels
+        )
         per_gaussian = np.concatenate(
             [engine.gaussian_relevancies(texts, k) for k in levels], axis=1
         )
@@ -292,6 +306,7 @@ def evaluate_lerf_opengaussian(
     scene_name: str = "",
     raster: RasterConfig = RasterConfig(),
     progress: Progress | None = None,
+    rescale_labels: bool = False,
 ) -> ProtocolResult:
     """OpenGaussian's LERF-OVS protocol (``compute_lerf_iou.py``, docs/protocols.md).
 
@@ -319,6 +334,7 @@ def evaluate_lerf_opengaussian(
         prompts=prompts,
         raster=raster,
         progress=progress,
+        rescale_labels=rescale_labels,
     )
     scored = {(item["frame"], item["prompt"]): item for item in result.items}
     items = [
@@ -348,6 +364,26 @@ def evaluate_lerf_opengaussian(
     return ProtocolResult("lerf-opengaussian", metrics, items, settings, (note,))
 
 
+def check_label_size(
+    source: str, label_size: tuple[int, int], camera_size: tuple[int, int], rescale: bool
+) -> None:
+    """Refuse 2-D labels of ``label_size`` (width, height) for a camera of ``camera_size`` when
+    their aspect ratios differ by more than 1 % (they were drawn on another capture's images),
+    unless ``rescale``; labels of the same aspect ratio are scaled to the camera.
+
+    Raises:
+        InputError: naming ``source``, both sizes and ``--rescale-labels``.
+    """
+    (label_width, label_height), (width, height) = label_size, camera_size
+    if rescale or abs((label_width / label_height) / (width / height) - 1.0) <= 0.01:
+        return
+    raise InputError(
+        source,
+        f"labels are {label_width}×{label_height} but their camera is {width}×{height}, another "
+        "aspect ratio: they belong to another capture (--rescale-labels stretches them anyway)",
+    )
+
+
 def evaluate_3dovs(
     engine: FieldQuery,
     gaussians: Gaussians,
@@ -357,6 +393,7 @@ def evaluate_3dovs(
     mask_threshold: float = 0.5,
     raster: RasterConfig = RasterConfig(),
     progress: Progress | None = None,
+    rescale_labels: bool = False,
 ) -> ProtocolResult:
     """The THGS rule on 3D-OVS: every class mask of every annotated view.
 
@@ -377,7 +414,10 @@ def evaluate_3dovs(
         classes = list(masks)
         if classes:
             height, width = masks[classes[0]].shape
-            camera = cameras.select([int(view)]).resized([width], [height])
+            camera = cameras.select([int(view)])
+            camera_size = (int(camera.widths[0]), int(camera.heights[0]))
+            check_label_size(f"segmentations/{view}", (width, height), camera_size, rescale_labels)
+            camera = camera.resized([width], [height])
             selected = engine.selected([query_text(name) for name in classes])
             predicted = selection_masks(
                 gaussians, camera, selected, threshold=mask_threshold, config=raster

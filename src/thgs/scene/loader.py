@@ -26,7 +26,7 @@ from thgs.scene.images import find_images, fit_to_images
 from thgs.scene.ply import read_ply
 from thgs.scene.transforms_json import read_transforms_json
 
-__all__ = ["Scene", "load_cameras", "load_scene"]
+__all__ = ["Scene", "camera_disagreement", "load_cameras", "load_scene"]
 
 logger = logging.getLogger(__name__)
 
@@ -179,7 +179,7 @@ def _check_agreement(colmap: Path, transforms: Path, undo_applied_transform: boo
     """
     first = read_colmap(colmap)
     second = read_transforms_json(transforms, undo_applied_transform=undo_applied_transform)
-    problem = _disagreement(first, second)
+    problem = camera_disagreement(first, second)
     if problem is not None:
         raise InputError(
             colmap.parent if colmap.parent.name == "sparse" else colmap,
@@ -189,12 +189,18 @@ def _check_agreement(colmap: Path, transforms: Path, undo_applied_transform: boo
     return f"{transforms} describes the same cameras as the COLMAP model; reading COLMAP"
 
 
-def _disagreement(first: Cameras, second: Cameras) -> str | None:
-    """What differs between two descriptions of one capture (see :func:`_check_agreement`), or
-    None."""
-    if sorted(first.stems) != sorted(second.stems):
+def camera_disagreement(first: Cameras, second: Cameras, *, subset: bool = False) -> str | None:
+    """What differs between two descriptions of one capture, or None: the image stems (all of
+    them; with ``subset``, only that they share some), then on the shared images the intrinsics
+    (within 0.1 %, after scaling to the same image width) and the camera centres up to a
+    similarity transform (within 0.1 % of their spread; needs 3 shared cameras)."""
+    shared = [stem for stem in second.stems if stem in set(first.stems)]
+    if not subset and sorted(first.stems) != sorted(second.stems):
         only = sorted(set(first.stems) ^ set(second.stems))
         return f"different images ({len(only)} in one only, e.g. {only[:3]})"
+    if not shared:
+        return f"no image in common (e.g. {list(first.stems[:2])} and {list(second.stems[:2])})"
+    second = second.select([second.stems.index(stem) for stem in shared])
     order = [first.stems.index(stem) for stem in second.stems]
     scale = (second.widths.double() / first.widths[order].double())[:, None]
     ratio = second.Ks[:, :2, :].reshape(len(second), -1) / (

@@ -109,7 +109,13 @@ register_protocol(
         headline=(("lerf", "miou"), ("lerf-paper", "miou"), ("lerf", "accuracy")),
         evaluate=lambda c: [
             evaluate_lerf(
-                c.engine, c.gaussians, c.cameras, frames(c), raster=c.raster, progress=c.progress
+                c.engine,
+                c.gaussians,
+                c.cameras,
+                frames(c),
+                raster=c.raster,
+                progress=c.progress,
+                rescale_labels=c.options.get("rescale_labels", False),
             ),
             evaluate_lerf(
                 c.engine.using(mode="paper", levels=None),
@@ -118,6 +124,7 @@ register_protocol(
                 frames(c),
                 protocol="lerf-paper",
                 raster=c.raster,
+                rescale_labels=c.options.get("rescale_labels", False),
             ),
         ],
     )

@@ -19,7 +19,13 @@ register_protocol(
         headline=(("lerf-langsplat", "miou"), ("lerf-langsplat", "localization")),
         evaluate=lambda c: [
             evaluate_lerf_langsplat(
-                c.engine, c.gaussians, c.cameras, frames(c), raster=c.raster, progress=c.progress
+                c.engine,
+                c.gaussians,
+                c.cameras,
+                frames(c),
+                raster=c.raster,
+                progress=c.progress,
+                rescale_labels=c.options.get("rescale_labels", False),
             )
         ],
     )

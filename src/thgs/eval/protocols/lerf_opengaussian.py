@@ -27,6 +27,7 @@ register_protocol(
                 scene_name=c.scene_name,
                 raster=c.raster,
                 progress=c.progress,
+                rescale_labels=c.options.get("rescale_labels", False),
             )
         ],
     )

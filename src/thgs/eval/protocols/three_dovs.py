@@ -39,6 +39,7 @@ register_protocol(
                 read_3dovs_segmentations(c.ground_truth),
                 raster=c.raster,
                 progress=c.progress,
+                rescale_labels=c.options.get("rescale_labels", False),
             )
         ],
     )
