@@ -126,3 +126,39 @@ def test_pick_results_describe_the_region_chain(opened, tmp_path):
         )
     with pytest.raises(InputError, match=r"level must be in 0\.\.3 here, got 4"):
         pick_summary(field, picked, 4)
+
+
+def test_query_results_arrive_whole_or_not_at_all(opened, tmp_path, monkeypatch):
+    import thgs.results
+
+    field, scene, encoder = opened
+    engine = FieldQuery(field, encoder)
+    out = tmp_path / "answers"
+    out.mkdir()
+    (out / "mine.txt").write_text("kept")
+    cameras = scene.cameras.select([0, 1, 2])
+    real = thgs.results.write_mask_png
+    calls = []
+
+    def full_disk(path, mask):
+        calls.append(path)
+        if len(calls) == 4:
+            raise OSError(28, "No space left on device", str(path))
+        real(path, mask)
+
+    monkeypatch.setattr(thgs.results, "write_mask_png", full_disk)
+    with pytest.raises(OSError, match="No space left"):
+        write_query_results(
+            out, engine, ["mug", "table"], field_name="f", gaussians=scene.gaussians,
+            cameras=cameras,
+        )  # fmt: skip
+    # three masks were written before the disk filled: none of them reached ``out``
+    assert sorted(p.name for p in out.iterdir()) == ["mine.txt"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["answers"]  # no staging left behind
+    monkeypatch.setattr(thgs.results, "write_mask_png", real)
+    written = write_query_results(
+        out, engine, ["mug", "table"], field_name="f", gaussians=scene.gaussians, cameras=cameras
+    )
+    assert sorted(p.name for p in out.iterdir()) == ["mine.txt", "mug", "results.json", "table"]
+    assert all(path.is_file() for paths in written.files.values() for path in paths)
+    assert len(written.files["mug"]) == 3

@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from thgs._atomic import staging_folder
 from thgs.errors import InputError
 from thgs.export import slug, write_json, write_map_png, write_mask_png, write_selection_ply
 from thgs.field import SemanticField
@@ -100,7 +101,9 @@ def write_query_results(
     """Answer ``texts`` with ``engine`` and write the answers to ``out``.
 
     Args:
-        out: the folder to write into (created if missing).
+        out: the folder to write into (created if missing). Everything is first written to a
+            hidden folder beside it and moved in only when all of it is written, results.json
+            last: a failure part-way (a full disk, Ctrl-C) leaves ``out`` as it was.
         engine: the query engine (its config is the selection rule).
         texts: the queries, at least one.
         field_name: how ``results.json`` names the field (e.g. its path).
@@ -124,42 +127,49 @@ def write_query_results(
     config = engine.config
     selections = engine.select(list(texts))
     names = unique_names(texts)
-    files: dict[str, list[Path]] = {name: [] for name in names}
-    if cameras is not None and gaussians is not None and len(cameras):
-        selected = np.stack([s.gaussians for s in selections], axis=1)
-        relevancies = {
-            k: np.stack([engine.gaussian_relevancy(text, k) for text in texts], axis=1)
-            for k in (config.searched_levels if relevancy else ())
-        }
-        for index in range(len(cameras)):
-            camera = cameras.select([index])
-            stem = camera.stems[0]
-            masks = selection_masks(
-                gaussians, camera, selected, threshold=mask_threshold, config=raster
-            )
-            for q, name in enumerate(names):
-                path = out / name / f"{stem}.png"
-                write_mask_png(path, masks[..., q])
-                files[name].append(path)
-            for k, per_gaussian in relevancies.items():
-                maps = relevancy_map(gaussians, camera, per_gaussian, config=raster)
+    written: dict[str, list[Path]] = {name: [] for name in names}  # relative to ``out``
+    with staging_folder(out) as stage:
+        if cameras is not None and gaussians is not None and len(cameras):
+            selected = np.stack([s.gaussians for s in selections], axis=1)
+            relevancies = {
+                k: np.stack([engine.gaussian_relevancy(text, k) for text in texts], axis=1)
+                for k in (config.searched_levels if relevancy else ())
+            }
+            for index in range(len(cameras)):
+                camera = cameras.select([index])
+                stem = camera.stems[0]
+                masks = selection_masks(
+                    gaussians, camera, selected, threshold=mask_threshold, config=raster
+                )
                 for q, name in enumerate(names):
-                    path = out / name / f"{stem}-relevancy-{LEVEL_NAMES[k]}.png"
-                    write_map_png(path, maps[..., q])
-                    files[name].append(path)
-    results = out / "results.json"
-    write_json(
-        results,
-        {
-            "field": field_name,
-            "space": engine.regions.space,
-            "config": _settings(engine, config),
-            "queries": [
-                {**selection.to_json(engine.regions), "files": [str(p) for p in files[name]]}
-                for selection, name in zip(selections, names)
-            ],
-        },
-    )
+                    write_mask_png(stage / name / f"{stem}.png", masks[..., q])
+                    written[name].append(Path(name) / f"{stem}.png")
+                for k, per_gaussian in relevancies.items():
+                    maps = relevancy_map(gaussians, camera, per_gaussian, config=raster)
+                    for q, name in enumerate(names):
+                        relative = Path(name) / f"{stem}-relevancy-{LEVEL_NAMES[k]}.png"
+                        write_map_png(stage / relative, maps[..., q])
+                        written[name].append(relative)
+        files = {name: [out / relative for relative in paths] for name, paths in written.items()}
+        write_json(
+            stage / "results.json",
+            {
+                "field": field_name,
+                "space": engine.regions.space,
+                "config": _settings(engine, config),
+                "queries": [
+                    {**selection.to_json(engine.regions), "files": [str(p) for p in files[name]]}
+                    for selection, name in zip(selections, names)
+                ],
+            },
+        )
+        # everything is written: move it into ``out`` (renames), results.json last
+        out.mkdir(parents=True, exist_ok=True)
+        for relative in [path for paths in written.values() for path in paths]:
+            (out / relative).parent.mkdir(parents=True, exist_ok=True)
+            os.replace(stage / relative, out / relative)
+        results = out / "results.json"
+        os.replace(stage / "results.json", results)
     logger.info("wrote %s (%d queries)", results, len(selections))
     return QueryFiles(tuple(selections), results, {k: tuple(v) for k, v in files.items()})
 
