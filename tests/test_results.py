@@ -162,3 +162,19 @@ def test_query_results_arrive_whole_or_not_at_all(opened, tmp_path, monkeypatch)
     assert sorted(p.name for p in out.iterdir()) == ["mine.txt", "mug", "results.json", "table"]
     assert all(path.is_file() for paths in written.files.values() for path in paths)
     assert len(written.files["mug"]) == 3
+
+
+def test_a_very_long_query_still_names_a_file(opened, tmp_path):
+    from thgs.export import slug
+
+    field, scene, encoder = opened
+    long = "the mug on the table " * 500  # 10,500 characters
+    name = slug(long)
+    assert len(name) <= 80 and name.startswith("the-mug-on-the-table-the-mug")
+    assert slug(long) == name and slug(long + "!") != name  # stable, and texts stay apart
+    assert slug("Mug handle") == "mug-handle"  # short names are unchanged
+    written = write_query_results(
+        tmp_path / "q", FieldQuery(field, encoder), [long], field_name="f",
+        gaussians=scene.gaussians, cameras=scene.cameras.select([0]),
+    )  # fmt: skip
+    assert written.files[name][0].is_file()

@@ -19,6 +19,7 @@ interrupted export never leaves a half-written file behind.
 
 from __future__ import annotations
 
+import hashlib
 import io
 import json
 import os
@@ -189,8 +190,13 @@ def write_map_png(path: str | os.PathLike[str], values: np.ndarray) -> None:
 
 
 def slug(text: str) -> str:
-    """A file-name-safe form of a query: lower case, runs of other characters as ``-``."""
-    return re.sub(r"[^a-z0-9]+", "-", text.lower()).strip("-") or "query"
+    """A file-name-safe form of a query: lower case, runs of other characters as ``-``; at most
+    80 characters (a longer one keeps its first 71 and the first 8 hex digits of the text's
+    SHA-256, so a 10,000-character query still names a file)."""
+    name = re.sub(r"[^a-z0-9]+", "-", text.lower()).strip("-") or "query"
+    if len(name) <= 80:
+        return name
+    return f"{name[:71].rstrip('-')}-{hashlib.sha256(text.encode()).hexdigest()[:8]}"
 
 
 def write_json(path: str | os.PathLike[str], value: Any, *, indent: int | None = 2) -> None:
