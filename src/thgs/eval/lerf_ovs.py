@@ -144,8 +144,15 @@ def read_lerf_labels(path: str | os.PathLike[str]) -> FrameLabels:
         if bbox is None:
             low, high = polygon.min(axis=0), polygon.max(axis=0)
             bbox = [low[0], low[1], high[0], high[1]]
-        if len(bbox) != 4:
-            raise InputError(path, f"{where}: 'bbox' must be [x1, y1, x2, y2]")
+        if (
+            not isinstance(bbox, (list, tuple))
+            or len(bbox) != 4
+            or not all(
+                isinstance(v, (int, float, np.floating)) and not isinstance(v, bool) for v in bbox
+            )
+            or not np.isfinite(np.asarray(bbox, dtype=np.float64)).all()
+        ):
+            raise InputError(path, f"{where}: 'bbox' must be [x1, y1, x2, y2], finite numbers")
         group = entry.get("group")
         if group is None:
             group = 0

@@ -15,7 +15,11 @@ from torch import Tensor
 from thgs.errors import InputError
 from thgs.scene.distortion import Distortion, pinhole_camera, undistortion_map
 
-__all__ = ["Cameras", "refuse_distortion", "round_half_up", "viewmat_from_pose"]
+__all__ = ["MAX_IMAGE_SIDE", "Cameras", "refuse_distortion", "round_half_up", "viewmat_from_pose"]
+
+MAX_IMAGE_SIDE = 1 << 20
+"""The largest image width or height a camera file may state (1,048,576 pixels); larger values
+are corrupt files, not cameras."""
 
 
 def round_half_up(value: float) -> int:

@@ -22,7 +22,7 @@ import numpy as np
 from thgs._atomic import atomic_output
 from thgs._json import get_matrix, get_number, load_json
 from thgs.errors import InputError
-from thgs.scene.cameras import Cameras, refuse_distortion, viewmat_from_pose
+from thgs.scene.cameras import MAX_IMAGE_SIDE, Cameras, refuse_distortion, viewmat_from_pose
 
 __all__ = ["read_cameras_json", "write_cameras_json"]
 
@@ -53,12 +53,17 @@ def read_cameras_json(path: str | os.PathLike[str]) -> Cameras:
         height = get_number(entry, "height", path, where)
         if width != int(width) or height != int(height) or width <= 0 or height <= 0:
             raise InputError(path, f"{where}: size {width}×{height} is not positive integers")
+        if max(width, height) > MAX_IMAGE_SIDE:
+            raise InputError(
+                path, f"{where}: size {width:g}×{height:g} exceeds {MAX_IMAGE_SIDE:,} pixels"
+            )
         fx = get_number(entry, "fx", path, where)
         fy = get_number(entry, "fy", path, where)
         rotation = get_matrix(entry, "rotation", (3, 3), path, where)
         position = get_matrix(entry, "position", (3,), path, where)
         if (
-            not np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-5)
+            np.abs(rotation).max() > 1.0 + 1e-5  # not a rotation, and would overflow below
+            or not np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-5)
             or np.linalg.det(rotation) < 0
         ):
             raise InputError(path, f"{where}: 'rotation' is not a proper rotation matrix")

@@ -35,7 +35,7 @@ from PIL import Image, UnidentifiedImageError
 from thgs._atomic import atomic_output
 from thgs._json import get_matrix, get_number, load_json
 from thgs.errors import InputError
-from thgs.scene.cameras import Cameras, refuse_distortion, viewmat_from_pose
+from thgs.scene.cameras import MAX_IMAGE_SIDE, Cameras, refuse_distortion, viewmat_from_pose
 from thgs.scene.images import image_candidates
 
 __all__ = ["read_transforms_json", "write_transforms_json"]
@@ -111,6 +111,10 @@ def _intrinsics(
         width, height = get_number(values, "w", path, where), get_number(values, "h", path, where)
         if width != int(width) or height != int(height) or width <= 0 or height <= 0:
             raise InputError(path, f"{where}: size {width}×{height} is not positive integers")
+        if max(width, height) > MAX_IMAGE_SIDE:
+            raise InputError(
+                path, f"{where}: size {width:g}×{height:g} exceeds {MAX_IMAGE_SIDE:,} pixels"
+            )
         width, height = int(width), int(height)
     else:
         width, height = _image_size(root, file_path, path, where)
@@ -187,6 +191,7 @@ def read_transforms_json(
         rotation = camtoworld[:3, :3]
         if (
             not np.allclose(camtoworld[3], [0, 0, 0, 1], atol=1e-6)
+            or np.abs(rotation).max() > 1.0 + 1e-4  # not a rotation, and would overflow below
             or not np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-4)
             or np.linalg.det(rotation) < 0
         ):

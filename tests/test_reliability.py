@@ -1,0 +1,172 @@
+"""Property-based corruption of every input format (issue 26): truncations, byte changes and, for
+JSON formats, missing keys, wrong types and non-finite numbers. Each reader must either read the
+file or raise :class:`thgs.errors.InputError` naming it — never another exception — and must
+write nothing. Examples per format: ``max_examples`` below (derandomized, so CI is repeatable)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from collections.abc import Callable
+from pathlib import Path
+
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from conftest import random_cameras
+from thgs.errors import InputError
+from thgs.eval.lerf_ovs import read_lerf_labels
+from thgs.field import load_field
+from thgs.scene import (
+    read_cameras_json,
+    read_colmap,
+    read_ply,
+    read_transforms_json,
+    write_cameras_json,
+    write_transforms_json,
+)
+
+EXAMPLES = 100
+SETTINGS = settings(
+    max_examples=EXAMPLES,
+    deadline=None,
+    derandomize=True,
+    suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
+)
+
+
+def _listing(folder: Path) -> list[str]:
+    return sorted(str(p.relative_to(folder)) for p in folder.rglob("*"))
+
+
+def _check(reader: Callable[[Path], object], path: Path, name: str) -> None:
+    """``reader(path)`` reads or raises an InputError naming ``name``; nothing is written."""
+    before = _listing(path.parent if path.is_file() else path)
+    try:
+        reader(path)
+    except InputError as error:
+        assert name in str(error), str(error)
+    after = _listing(path.parent if path.is_file() else path)
+    assert after == before
+
+
+@st.composite
+def damaged(draw, original: bytes) -> bytes:
+    """The original cut at some byte, or with a few bytes changed, or both."""
+    data = bytearray(original)
+    if draw(st.booleans()):
+        for _ in range(draw(st.integers(1, 8))):
+            data[draw(st.integers(0, len(data) - 1))] = draw(st.integers(0, 255))
+    if draw(st.booleans()) or data == bytearray(original):
+        data = data[: draw(st.integers(0, len(data) - 1))]
+    return bytes(data)
+
+
+def _json_mutations(document):
+    """Strategy: the document with one value removed, replaced by a wrong type or made
+    non-finite, anywhere in its tree."""
+    paths = []
+
+    def walk(node, trail):
+        if isinstance(node, dict):
+            for key, value in node.items():
+                paths.append((*trail, key))
+                walk(value, (*trail, key))
+        elif isinstance(node, list):
+            for index, value in enumerate(node[:3]):
+                paths.append((*trail, index))
+                walk(value, (*trail, index))
+
+    walk(document, ())
+    replacements = st.sampled_from(
+        ["delete", None, "text", [], {}, float("nan"), float("inf"), -1, 1e300, True]
+    )
+
+    @st.composite
+    def mutated(draw):
+        copy = json.loads(json.dumps(document))
+        trail = draw(st.sampled_from(paths))
+        parent = copy
+        for step in trail[:-1]:
+            parent = parent[step]
+        value = draw(replacements)
+        if value == "delete" and isinstance(parent, dict):
+            del parent[trail[-1]]
+        elif value == "delete":
+            parent.pop(trail[-1])
+        else:
+            parent[trail[-1]] = value
+        return json.dumps(copy)
+
+    return mutated()
+
+
+@pytest.fixture
+def samples(shared_data, tmp_path_factory):
+    root = tmp_path_factory.mktemp("samples")
+    cameras = random_cameras(3, centred=True)
+    write_cameras_json(root / "cameras.json", cameras)
+    write_transforms_json(root / "transforms.json", cameras)
+    return {
+        "ply": (shared_data / "ply_3dgs_train1000.ply").read_bytes(),
+        "lerf": (
+            sorted((shared_data / "lerf_ovs_labels" / "teatime").glob("*.json"))[0]
+        ).read_text(),
+        "cameras.json": (root / "cameras.json").read_text(),
+        "transforms.json": (root / "transforms.json").read_text(),
+    }
+
+
+@SETTINGS
+@given(data=st.data())
+def test_damaged_ply_files(samples, tmp_path, data):
+    path = tmp_path / "scene.ply"
+    path.write_bytes(data.draw(damaged(samples["ply"])))
+    _check(read_ply, path, "scene.ply")
+
+
+@SETTINGS
+@given(data=st.data())
+def test_damaged_lerf_label_files(samples, tmp_path, data):
+    path = tmp_path / "frame_00002.json"
+    if data.draw(st.booleans()):
+        path.write_text(data.draw(_json_mutations(json.loads(samples["lerf"]))))
+    else:
+        path.write_bytes(data.draw(damaged(samples["lerf"].encode())))
+    _check(read_lerf_labels, path, "frame_00002.json")
+
+
+@SETTINGS
+@given(data=st.data())
+def test_damaged_camera_files(samples, tmp_path, data):
+    for name, reader in (
+        ("cameras.json", read_cameras_json),
+        ("transforms.json", read_transforms_json),
+    ):
+        path = tmp_path / name
+        if data.draw(st.booleans()):
+            path.write_text(data.draw(_json_mutations(json.loads(samples[name]))))
+        else:
+            path.write_bytes(data.draw(damaged(samples[name].encode())))
+        _check(reader, path, name)
+
+
+@SETTINGS
+@given(data=st.data())
+def test_damaged_colmap_models(shared_data, tmp_path, data):
+    model = tmp_path / "sparse"
+    shutil.rmtree(model, ignore_errors=True)
+    shutil.copytree(shared_data / "colmap_small" / "sparse" / "0", model)
+    name = data.draw(st.sampled_from(sorted(p.name for p in model.iterdir())))
+    path = model / name
+    path.write_bytes(data.draw(damaged(path.read_bytes())))
+    _check(read_colmap, model, "sparse")
+
+
+@SETTINGS
+@given(data=st.data())
+def test_damaged_field_files(small_field, tmp_path, data):
+    path = tmp_path / "field.thgs"
+    path.write_bytes(data.draw(damaged(small_field.read_bytes())))
+    _check(load_field, path, "field.thgs")
