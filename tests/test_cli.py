@@ -749,3 +749,42 @@ def test_label_sizes_and_camera_subsets():
         cameras.viewmats, cameras.Ks, cameras.widths, cameras.heights, ("a", "b", "c", "d", "e")
     )
     assert "no image in common" in camera_disagreement(cameras, renamed, subset=True)
+
+
+@pytest.mark.parametrize(
+    "command",
+    ["build", "query", "export", "pick", "eval", "synth", "demo"],
+)
+def test_ctrl_c_while_writing_leaves_nothing(
+    command, small_dataset, small_field, tmp_path, capsys, monkeypatch
+):
+    """Ctrl-C at the moment the first finished output would be moved into place: exit 130, one
+    error line, and no file and no hidden temporary left in the output folder."""
+    from thgs import load_scene
+
+    camera = load_scene(small_dataset).cameras.stems[0]
+    out = tmp_path / "out"
+    argv = {
+        "build": ["build", str(small_dataset), "-o", str(out / "f.thgs")],
+        "query": ["query", str(small_field), "mug", "--views", camera, "-o", str(out)],
+        "export": ["export", str(small_field), "--query", "mug", "-o", str(out)],
+        "pick": ["pick", str(small_field), "--view", camera, "--pixel", "160", "120", "-o",
+                 str(out)],
+        "eval": ["eval", str(small_dataset), str(small_field), "--protocol", "hierarchy", "-o",
+                 str(out / "r.json")],
+        "synth": ["synth", "synth-small", str(out / "d"), "--gaussians", "2000", "--views", "4"],
+        "demo": ["demo", "-o", str(out / "demo"), "--cache", str(out / "cache"), "--gaussians",
+                 "2000", "--views", "4"],
+    }[command]  # fmt: skip
+    out.mkdir()
+    real = os.replace
+
+    def interrupted(source, target):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(os, "replace", interrupted)
+    code, _, err = run(argv, capsys)
+    monkeypatch.setattr(os, "replace", real)
+    assert code == 130 and err.strip().splitlines()[-1] == "error: interrupted", err
+    left = [p for p in out.rglob("*") if p.is_file() or p.name.startswith(".")]
+    assert left == [], left  # (the demo's cache folder may exist, empty)

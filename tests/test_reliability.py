@@ -10,6 +10,7 @@ import shutil
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -18,6 +19,7 @@ from conftest import random_cameras
 from thgs.errors import InputError
 from thgs.eval.lerf_ovs import read_lerf_labels
 from thgs.field import load_field
+from thgs.guidance.langsplat import read_view_guidance
 from thgs.scene import (
     read_cameras_json,
     read_colmap,
@@ -170,3 +172,27 @@ def test_damaged_field_files(small_field, tmp_path, data):
     path = tmp_path / "field.thgs"
     path.write_bytes(data.draw(damaged(small_field.read_bytes())))
     _check(load_field, path, "field.thgs")
+
+
+@SETTINGS
+@given(data=st.data())
+def test_damaged_guidance_files(small_dataset, tmp_path, data):
+    folder = tmp_path / "language_features"
+    shutil.rmtree(folder, ignore_errors=True)
+    folder.mkdir()
+    stem = sorted(p.name for p in (small_dataset / "language_features").glob("*_s.npy"))[0][:-6]
+    for suffix in ("_s.npy", "_f.npy"):
+        shutil.copy(small_dataset / "language_features" / f"{stem}{suffix}", folder)
+    name = f"{stem}{data.draw(st.sampled_from(['_s.npy', '_f.npy']))}"
+    path = folder / name
+    if data.draw(st.booleans()):
+        path.write_bytes(data.draw(damaged(path.read_bytes())))
+    else:  # a well-formed array with wrong values: NaN, huge, negative, another dtype
+        array = np.load(path)
+        flat = array.reshape(-1).copy()
+        index = data.draw(st.integers(0, flat.size - 1))
+        value = data.draw(st.sampled_from([np.nan, np.inf, -7.0, 1e30, 0.5]))
+        flat = flat.astype(np.float64)
+        flat[index] = value
+        np.save(path, flat.reshape(array.shape).astype(data.draw(st.sampled_from(["f4", "f8"]))))
+    _check(lambda p: read_view_guidance(p.parent, stem), path, name)

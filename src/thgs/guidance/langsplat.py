@@ -138,7 +138,7 @@ def _load(path: Path) -> np.ndarray:
         raise InputError(path, "no such file")
     try:
         return np.load(path, allow_pickle=False)
-    except (ValueError, OSError, EOFError) as exc:
+    except Exception as exc:  # numpy's header parser raises ValueError, SyntaxError, TokenError…
         raise InputError(path, f"not a readable .npy file ({exc})") from exc
 
 
@@ -164,6 +164,13 @@ def read_view_guidance(folder: str | os.PathLike[str], stem: str) -> ViewGuidanc
         raise InputError(segments_path, f"{count} mask ids are NaN or infinite")
     if not np.array_equal(segments, np.round(segments)):
         raise InputError(segments_path, "mask ids must be whole numbers")
+    limits = np.iinfo(np.int32)
+    if segments.size and (segments.min() < limits.min or segments.max() > limits.max):
+        raise InputError(
+            segments_path,
+            f"mask ids range over [{segments.min():g}, {segments.max():g}]: ids are feature rows "
+            "(≥ 0), or −1 for no mask",
+        )
     if features.ndim != 2 or not np.issubdtype(features.dtype, np.floating):
         raise InputError(
             features_path,
