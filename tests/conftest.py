@@ -105,3 +105,16 @@ def small_field(small_dataset, tmp_path_factory):
     except SystemExit as exc:  # pragma: no cover - the command returns normally
         assert not exc.code
     return out
+
+
+def run_cli(argv: list[str], capsys) -> tuple[int, str, str]:
+    """Run the ``thgs`` CLI in-process: ``(exit code, stdout, stderr)``."""
+    from thgs.cli import entrypoint
+
+    try:
+        entrypoint(argv)
+        code = 0
+    except SystemExit as exc:
+        code = int(exc.code or 0)
+    captured = capsys.readouterr()
+    return code, captured.out, captured.err

@@ -12,18 +12,8 @@ from pathlib import Path
 import pytest
 
 from conftest import REPO
-from thgs.cli import entrypoint
+from conftest import run_cli as run
 from thgs.errors import InputError
-
-
-def run(argv: list[str], capsys) -> tuple[int, str, str]:
-    try:
-        entrypoint(argv)
-        code = 0
-    except SystemExit as exc:
-        code = int(exc.code or 0)
-    captured = capsys.readouterr()
-    return code, captured.out, captured.err
 
 
 def test_info_on_the_real_sample(shared_data, capsys):

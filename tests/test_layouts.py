@@ -11,8 +11,8 @@ from pathlib import Path
 
 import pytest
 
+from conftest import run_cli as run
 from thgs import InputError, load_scene
-from thgs.cli import entrypoint
 from thgs.eval import find_ground_truth, read_lerf_labels
 from thgs.eval.rules import OPENGAUSSIAN_LERF_PROMPTS
 from thgs.field import load_field
@@ -23,16 +23,6 @@ CFG_ARGS = (
     "resolution=-1, white_background=False, data_device='cuda', eval=True, "
     "render_items=['RGB', 'Alpha', 'Normal', 'Depth'], depth_ratio=0.0, debug=False)\n"
 )
-
-
-def run(argv: list[str], capsys) -> tuple[int, str, str]:
-    try:
-        entrypoint(argv)
-        code = 0
-    except SystemExit as exc:
-        code = int(exc.code or 0)
-    captured = capsys.readouterr()
-    return code, captured.out, captured.err
 
 
 def one_line(text: str) -> str:

@@ -13,7 +13,7 @@ import subprocess
 from pathlib import Path
 
 import thgs.cli
-from thgs.cli import entrypoint
+from conftest import run_cli as run
 from thgs.field import load_field
 
 REPO = Path(__file__).resolve().parents[1]
@@ -76,16 +76,6 @@ def thgs_argv(command: str) -> list[str] | None:
     """``thgs …`` as argv without the program name (comments dropped), else None."""
     argv = shlex.split(command, comments=True)
     return argv[1:] if argv and argv[0] == "thgs" else None
-
-
-def run(argv: list[str], capsys) -> tuple[int, str, str]:
-    try:
-        entrypoint(argv)
-        code = 0
-    except SystemExit as exc:
-        code = int(exc.code or 0)
-    captured = capsys.readouterr()
-    return code, captured.out, captured.err
 
 
 def squeezed(text: str) -> str:

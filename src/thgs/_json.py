@@ -1,4 +1,5 @@
-"""JSON reading with errors that name the file and the key: camera formats, labels, guidance."""
+"""JSON and text reading with errors that name the file and the key: camera formats, labels,
+guidance, training configurations."""
 
 from __future__ import annotations
 
@@ -8,6 +9,18 @@ from pathlib import Path
 from typing import Any
 
 from thgs.errors import InputError
+
+
+def read_text(path: str | os.PathLike[str]) -> str:
+    """A UTF-8 text file's content; raise :class:`InputError` naming the file when it is missing
+    or unreadable."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "no such file")
+    try:
+        return path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(path, f"not readable as text ({exc})") from exc
 
 
 def load_json(path: str | os.PathLike[str]) -> Any:

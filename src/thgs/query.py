@@ -600,7 +600,8 @@ class FieldQuery:
                 k: self.relevancy(todo, k, config.temperature) for k in config.searched_levels
             }
             cosines = {k: self.similarity(todo, k) for k in (1, 2, 3)}
-            presence, confidence = self._confidences(cosines, smallest)
+            null = self.null_model(smallest)
+            presence = self._presence(cosines, smallest, null)
             cut = config.threshold if config.threshold is not None else self.threshold
             unselectable = unselectable_reason(
                 {k: self.regions.seen[k - 1] for k in config.searched_levels}, allowed
@@ -629,10 +630,13 @@ class FieldQuery:
                     regions,
                     self.gaussians_of([(k, r) for k, r, _ in regions]),
                     reason,
-                    None if np.isnan(presence[q]) else float(presence[q]),
+                    None if null is None else float(presence[q]),
                     None
-                    if np.isnan(presence[q])
-                    else tuple(float(confidence[k][q, r]) for k, r, _ in regions),
+                    if null is None
+                    else tuple(  # selected regions are seen
+                        float(region_confidence(null.score(cosines[k][q, r])))
+                        for k, r, _ in regions
+                    ),
                 )
                 self._remember((text, config), selection)
                 logger.debug(
@@ -666,9 +670,8 @@ class FieldQuery:
         what each text names (:func:`thgs.confidence.region_confidence`; 0 for unseen regions;
         NaN when the scene has no null, see :meth:`null_model`)."""
         level = self.regions.checked_level(level)
-        smallest = self.min_gaussians if min_gaussians is None else min_gaussians
-        cosines = {k: self.similarity(texts, k) for k in (1, 2, 3)}
-        return self._confidences(cosines, smallest)[1][level]
+        null = self.null_model(min_gaussians)
+        return self._region_confidence(self.similarity(texts, level), level, null)
 
     def presence(self, texts: Sequence[str], min_gaussians: int | None = None) -> np.ndarray:
         """[Q] the calibrated probability that the scene holds what each text names
@@ -676,7 +679,7 @@ class FieldQuery:
         the scene has no null)."""
         smallest = self.min_gaussians if min_gaussians is None else min_gaussians
         cosines = {k: self.similarity(texts, k) for k in (1, 2, 3)}
-        return self._confidences(cosines, smallest)[0]
+        return self._presence(cosines, smallest, self.null_model(smallest))
 
     def _selectable_cosines(self, cosines: dict[int, np.ndarray], smallest: int) -> np.ndarray:
         """[Q, C] the columns of ``cosines`` (level → [Q, R_level]) that belong to seen regions
@@ -687,21 +690,22 @@ class FieldQuery:
         ]
         return np.concatenate(columns, axis=1)
 
-    def _confidences(
-        self, cosines: dict[int, np.ndarray], smallest: int
-    ) -> tuple[np.ndarray, dict[int, np.ndarray]]:
-        """Presence [Q] and level → [Q, R_level] region confidences from the texts' cosines
-        (NaN without a null)."""
-        null = self.null_model(smallest)
+    def _region_confidence(
+        self, cosines: np.ndarray, level: int, null: NullModel | None
+    ) -> np.ndarray:
+        """[Q, R_level] region confidences from the texts' cosines with the level's regions."""
         if null is None:
-            unknown = {k: np.full(c.shape, np.nan) for k, c in cosines.items()}
-            return np.full(len(cosines[1]), np.nan), unknown
-        regions = {
-            k: np.where(self.regions.seen[k - 1], region_confidence(null.score(c)), 0.0)
-            for k, c in cosines.items()
-        }
+            return np.full(cosines.shape, np.nan)
+        return np.where(self.regions.seen[level - 1], region_confidence(null.score(cosines)), 0.0)
+
+    def _presence(
+        self, cosines: dict[int, np.ndarray], smallest: int, null: NullModel | None
+    ) -> np.ndarray:
+        """[Q] presence from the texts' cosines with every level's regions (level → [Q, R])."""
+        if null is None:
+            return np.full(len(cosines[1]), np.nan)
         best = self._selectable_cosines(cosines, smallest).max(axis=1)
-        return presence_confidence(null.score(best)), regions
+        return presence_confidence(null.score(best))
 
     def selected(self, texts: Sequence[str]) -> np.ndarray:
         """[N, Q] bool: the Gaussians each text selects under the default config."""

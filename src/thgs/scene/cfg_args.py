@@ -34,6 +34,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from thgs._json import read_text
 from thgs.errors import InputError
 
 __all__ = ["CFG_ARGS", "ModelSource", "find_model_source", "locate_source", "read_cfg_args"]
@@ -55,12 +56,7 @@ def read_cfg_args(path: str | os.PathLike[str]) -> dict[str, Any]:
         InputError: the file is missing, unreadable, or not such a call.
     """
     path = Path(path)
-    if not path.is_file():
-        raise InputError(path, "no such file")
-    try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(path, f"not readable as text ({exc})") from exc
+    text = read_text(path)
     try:
         call = ast.parse(text.strip(), mode="eval").body
     except SyntaxError as exc:

@@ -28,6 +28,7 @@ import os
 from pathlib import Path
 from typing import Any
 
+from thgs._json import read_text
 from thgs.errors import InputError
 from thgs.scene.cfg_args import ModelSource, locate_source
 
@@ -73,12 +74,7 @@ def read_gsplat_config(path: str | os.PathLike[str]) -> dict[str, Any]:
     import yaml
 
     path = Path(path)
-    if not path.is_file():
-        raise InputError(path, "no such file")
-    try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(path, f"not readable as text ({exc})") from exc
+    text = read_text(path)
     try:
         if path.suffix.lower() == ".json":
             settings = json.loads(text)

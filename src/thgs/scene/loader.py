@@ -119,10 +119,6 @@ def load_cameras(
     found: list[str] = []
     if source.is_dir():
         camera_path = _find_cameras(source)
-        if camera_path.is_dir() and (source / "transforms.json").is_file():
-            found.append(
-                _check_agreement(camera_path, source / "transforms.json", undo_applied_transform)
-            )
     elif source.is_file():
         camera_path = source
     else:
@@ -131,6 +127,12 @@ def load_cameras(
     image_root: Path | None = None
     if camera_path.is_dir():
         cameras = read_colmap(camera_path)
+        if source.is_dir() and (source / "transforms.json").is_file():
+            found.append(
+                _check_agreement(
+                    cameras, camera_path, source / "transforms.json", undo_applied_transform
+                )
+            )
         found.append(f"COLMAP model {camera_path} ({len(cameras)} registered images)")
         image_root = source / (images or "images")
     else:
@@ -168,16 +170,18 @@ def load_cameras(
     return cameras, camera_path, found
 
 
-def _check_agreement(colmap: Path, transforms: Path, undo_applied_transform: bool) -> str:
+def _check_agreement(
+    first: Cameras, colmap: Path, transforms: Path, undo_applied_transform: bool
+) -> str:
     """A folder holding both a COLMAP model and a ``transforms.json`` is read from COLMAP only
     when both describe the same cameras: the same image stems, intrinsics within 0.1 % and camera
     centres equal up to a similarity transform (nerfstudio rescales, rotates and shifts the world)
-    within 0.1 % of their spread. Returns the line for ``found``.
+    within 0.1 % of their spread. ``first`` is the model's cameras, already read from ``colmap``.
+    Returns the line for ``found``.
 
     Raises:
         InputError: they disagree (naming both, what differs and ``--source``, which decides).
     """
-    first = read_colmap(colmap)
     second = read_transforms_json(transforms, undo_applied_transform=undo_applied_transform)
     problem = camera_disagreement(first, second)
     if problem is not None:

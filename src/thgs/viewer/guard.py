@@ -39,6 +39,7 @@ __all__ = ["AccessGuard", "guarded_websockets", "new_token"]
 logger = logging.getLogger(__name__)
 
 _LOOPBACK = frozenset({"localhost", "127.0.0.1", "::1"})
+_COOKIE = "thgs-viewer-token"
 _PATCH = threading.Lock()
 
 
@@ -69,10 +70,6 @@ class AccessGuard:
     host: str
     token: str | None
 
-    @property
-    def cookie_name(self) -> str:
-        return "thgs-viewer-token"
-
     def problem(self, headers: Any, path: str, local: tuple[str, int]) -> str | None:
         """Why a request must be refused, or None to let it through.
 
@@ -92,12 +89,14 @@ class AccessGuard:
         if origin is not None:
             parts = urlsplit(origin)
             try:
-                origin_port = parts.port or 80
-            except ValueError:
-                return f"Origin {origin!r} is not this server"
-            if parts.scheme != "http" or (parts.hostname or "").lower() not in names:
-                return f"Origin {origin!r} is not this server"
-            if origin_port != port:
+                same = (
+                    parts.scheme == "http"
+                    and (parts.hostname or "").lower() in names
+                    and (parts.port or 80) == port
+                )
+            except ValueError:  # a port out of range
+                same = False
+            if not same:
                 return f"Origin {origin!r} is not this server"
         if self.token is not None and not self._has_token(headers, path):
             return "no valid token (open the URL that thgs view printed)"
@@ -112,7 +111,7 @@ class AccessGuard:
 
     def set_cookie(self) -> str:
         """The ``Set-Cookie`` value that lets the page's later requests in."""
-        return f"{self.cookie_name}={self.token}; HttpOnly; SameSite=Strict; Path=/"
+        return f"{_COOKIE}={self.token}; HttpOnly; SameSite=Strict; Path=/"
 
     def _has_token(self, headers: Any, path: str) -> bool:
         assert self.token is not None
@@ -123,7 +122,7 @@ class AccessGuard:
                 cookie = SimpleCookie(line)
             except CookieError:
                 continue
-            morsel = cookie.get(self.cookie_name)
+            morsel = cookie.get(_COOKIE)
             if morsel is not None and hmac.compare_digest(
                 morsel.value.encode(), self.token.encode()
             ):
