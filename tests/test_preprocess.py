@@ -590,7 +590,7 @@ def _label_images(root: Path, count: int = 2) -> None:
 
 
 def test_cli_reaches_sams_thresholds_and_warns_without_masks(tmp_path, models, monkeypatch, capsys):
-    import thgs.guidance.preprocess as preprocess_module
+    import thgs.guidance.preprocess.models as preprocess_module
 
     monkeypatch.setattr(preprocess_module, "PointSegmenter", lambda *_, **__: ColourSegmenter())
     _label_images(tmp_path)
@@ -635,7 +635,7 @@ def test_mask_generator_config_names_the_setting():
 
 
 def test_a_clip_folder_records_its_own_space_and_itself(tmp_path, models, monkeypatch, capsys):
-    import thgs.guidance.preprocess as preprocess_module
+    import thgs.guidance.preprocess.models as preprocess_module
     from thgs.guidance import read_embedding_model
 
     monkeypatch.setattr(preprocess_module, "PointSegmenter", lambda *_, **__: ColourSegmenter())

@@ -17,12 +17,6 @@ __all__ = ["preprocess"]
 DTYPES = ("float32", "bfloat16", "float16")
 
 
-def _local_folder(value: str) -> Path | None:
-    """A --sam/--clip value: an existing folder is a local model, anything else a model id."""
-    path = Path(value).expanduser()
-    return path if path.is_dir() else None
-
-
 def preprocess(
     source: Annotated[Path, tyro.conf.arg(metavar="SOURCE")],
     /,
@@ -86,11 +80,10 @@ def preprocess(
     import torch
 
     from thgs.guidance.preprocess import (
-        CLIPImageEncoder,
         MaskGeneratorConfig,
-        PointSegmenter,
         PreprocessConfig,
         image_jobs,
+        load_preprocess_models,
         preprocess_images,
     )
     from thgs.scene import load_cameras
@@ -116,13 +109,9 @@ def preprocess(
     }
     with settings_as_flags(*masks):
         config = PreprocessConfig(masks=MaskGeneratorConfig(**masks))
-    torch_dtype = getattr(torch, dtype)
-    clip_path = _local_folder(clip)
-    if clip_path is None and space is not None and space != clip:
-        raise InputError("--space", f"names the space of a --clip folder; {clip!r} is a model id")
-    clip_space = clip if clip_path is None else space
-    segmenter = PointSegmenter(sam, _local_folder(sam), device=device, dtype=torch_dtype)
-    encoder = CLIPImageEncoder(clip_space, clip_path, device=device, dtype=torch_dtype)
+    segmenter, encoder = load_preprocess_models(
+        sam, clip, space=space, device=device, dtype=getattr(torch, dtype)
+    )
     stdout.print(
         f"{len(jobs)} images → {output}; SAM {segmenter.name} ({segmenter.kind}), "
         f"CLIP {encoder.space} ({encoder.dim}-D), {device}"

@@ -18,6 +18,7 @@ from thgs.guidance.preprocess.generator import (
     point_grid,
     segment_map,
 )
+from thgs.guidance.preprocess.models import load_preprocess_models, local_model_folder
 from thgs.guidance.preprocess.run import (
     MANIFEST_FILE,
     ImageJob,
@@ -46,6 +47,8 @@ __all__ = [
     "generate_masks",
     "image_jobs",
     "langsplat_size",
+    "load_preprocess_models",
+    "local_model_folder",
     "mask_crops",
     "mask_features",
     "point_grid",
