@@ -8,6 +8,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TypeVar
 
+from thgs._open_clip import OPEN_CLIP_CONFIG
 from thgs.errors import ThgsError
 
 __all__ = ["is_hub_id", "load_local_model", "quietly"]
@@ -60,11 +61,14 @@ def load_local_model(
         ``(model, source)``.
 
     Raises:
-        ThgsError: ``model_path`` has no config.json, or the weights are not found (the message
+        ThgsError: ``model_path`` has no config.json (nor, for CLIP, OpenCLIP's
+            open_clip_config.json), or the weights are not found (the message
             names the model, where it was looked for, the flag that passes a folder and, for a
             Hugging Face id, the command that fetches it).
     """
-    if model_path is not None and not (Path(model_path) / "config.json").is_file():
+    if model_path is not None and not any(
+        (Path(model_path) / name).is_file() for name in ("config.json", OPEN_CLIP_CONFIG)
+    ):
         raise ThgsError(f"{model_path}: not a Hugging Face model folder (no config.json)")
     source = str(model_path) if model_path is not None else model_id
     try:

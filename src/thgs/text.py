@@ -30,6 +30,7 @@ from typing import Protocol
 import numpy as np
 
 from thgs._hf import is_hub_id, load_local_model, quietly
+from thgs._open_clip import is_open_clip_folder, load_clip_model, load_clip_tokenizer
 from thgs.errors import InputError, ThgsError
 
 __all__ = [
@@ -73,20 +74,23 @@ def clip_space(model_path: str | os.PathLike[str]) -> str:
     else the folder's absolute path, a space of its own.
 
     Raises:
-        InputError: ``model_path`` is not a folder with a readable ``config.json``.
+        InputError: ``model_path`` is not a folder with a readable ``config.json`` (or, for
+            an OpenCLIP checkpoint, ``open_clip_config.json``).
     """
     folder = Path(model_path).expanduser().resolve()
     config_path = folder / "config.json"
-    if not config_path.is_file():
+    if not config_path.is_file() and not is_open_clip_folder(folder):
         raise InputError(folder, "not a Hugging Face model folder (no config.json)")
     for part in reversed(folder.parts):
         match = _CACHE_SNAPSHOT.fullmatch(part)
         if match:
             return f"{match[1]}/{match[2]}"
-    try:
-        config = json.loads(config_path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
-        raise InputError(config_path, f"not readable JSON ({error})") from error
+    config = {}
+    if config_path.is_file():
+        try:
+            config = json.loads(config_path.read_text(encoding="utf-8"))
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+            raise InputError(config_path, f"not readable JSON ({error})") from error
     name = config.get("_name_or_path") if isinstance(config, dict) else None
     if isinstance(name, str) and is_hub_id(name):
         return name
@@ -211,7 +215,7 @@ class CLIPTextEncoder:
     ):
         try:
             import torch
-            from transformers import AutoTokenizer, CLIPModel
+            import transformers  # noqa: F401  (the dependency this encoder needs)
         except ImportError as error:
             raise ThgsError(
                 "the CLIP text encoder needs transformers: pip install 'thgs[models]'"
@@ -219,8 +223,8 @@ class CLIPTextEncoder:
         self.space = space
 
         def load(source: str):
-            model = CLIPModel.from_pretrained(source, local_files_only=True).to(device).eval()
-            return model, AutoTokenizer.from_pretrained(source, local_files_only=True)
+            model = load_clip_model(source).to(device).eval()
+            return model, load_clip_tokenizer(source)
 
         (self._model, self._tokenizer), source = load_local_model(
             load, space, model_path, what="CLIP", hint="--text-model DIR"

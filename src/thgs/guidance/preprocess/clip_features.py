@@ -40,6 +40,7 @@ import numpy as np
 import torch
 
 from thgs._hf import load_local_model
+from thgs._open_clip import load_clip_model
 from thgs.errors import InputError, ThgsError
 from thgs.text import LANGSPLAT_SPACE, clip_space, known_dim
 
@@ -247,7 +248,7 @@ class CLIPImageEncoder:
         dtype: torch.dtype | None = None,
     ):
         try:
-            from transformers import CLIPModel
+            import transformers  # noqa: F401  (the dependency this encoder needs)
         except ImportError as error:
             raise ThgsError(
                 "the CLIP image encoder needs transformers: pip install 'thgs[models]'"
@@ -257,9 +258,7 @@ class CLIPImageEncoder:
         self.space = space
         self.model_path = None if model_path is None else Path(model_path).expanduser().resolve()
         self._model, source = load_local_model(
-            lambda source: (
-                CLIPModel.from_pretrained(source, local_files_only=True).to(device).eval()
-            ),
+            lambda source: load_clip_model(source).to(device).eval(),
             space,
             model_path,
             what="CLIP",
