@@ -260,7 +260,11 @@ def test_a_split_file_given_itself_is_read_as_it_is(tmp_path):
         h=30,
     )
     cameras, path, found = load_cameras(folder / "transforms_train.json")
-    assert cameras.names == ("color/a",) and found[-1].startswith("images not checked")
+    assert path == folder / "transforms_train.json" and cameras.names == ("color/a",)
+    assert found == [
+        f"transforms.json {path} (1 frames)",
+        "images not checked (none found), 40×30 px from the camera file",
+    ]
     with pytest.raises(InputError, match="1 of 1 frames name images that do not exist"):
         load_cameras(folder)
 

@@ -363,7 +363,8 @@ def load_scene(
             its ``cfg.yml``/``cfg.json`` names, see
             :func:`thgs.scene.gsplat_config.find_gsplat_source`, or from ``source``).
         source: where the cameras come from: the training data folder (COLMAP ``sparse/0`` +
-            ``images/``, or ``transforms.json``) or a camera file. See :func:`load_cameras`.
+            ``images/``, ``transforms_train.json`` + its images, or ``transforms.json``) or a
+            camera file. See :func:`load_cameras`.
             Default: for a model folder, the training data its ``cfg_args`` names when it is
             found here (:func:`thgs.scene.cfg_args.find_model_source`), else the model's
             ``cameras.json``; for a gsplat result folder (or a checkpoint in its ``ckpts/``),
