@@ -300,7 +300,7 @@ def test_cfg_args_source_without_cameras_names_the_flag(small_dataset, tmp_path,
         load_scene("output/teatime")
     assert str(caught.value) == (
         f"{root / 'lerf_ovs' / 'teatime'}: no cameras found: expected a COLMAP model (sparse/0/ "
-        "or sparse/), transforms.json or cameras.json (the source named by "
+        "or sparse/), transforms_train.json, transforms.json or cameras.json (the source named by "
         "output/teatime/cfg_args; --source decides, e.g. --source output/teatime/cameras.json)"
     )
 

@@ -18,11 +18,10 @@ something:
    ``model_path='output/teatime'``) and from the model folder's parent;
 3. the path's last three, two and one parts (``data/lerf_ovs/teatime``, ``lerf_ovs/teatime``,
    ``teatime`` for ``/home/me/data/lerf_ovs/teatime``), under where training ran, the model
-   folder's parent, its
-   grandparent and the working folder; a candidate must be a folder other than the model folder
-   that looks like training data (``sparse/``, ``transforms.json``, ``images/`` or
-   ``language_features/`` in it). The first tail length with a match decides; two different
-   matching folders are an error, not a guess.
+   folder's parent, its grandparent and the working folder; a candidate must be a folder other
+   than the model folder that looks like training data (``sparse/``, ``transforms.json``,
+   ``transforms_train.json``, ``images/`` or ``language_features/`` in it). The first tail
+   length with a match decides; two different matching folders are an error, not a guess.
 """
 
 from __future__ import annotations
@@ -42,7 +41,13 @@ __all__ = ["CFG_ARGS", "ModelSource", "find_model_source", "locate_source", "rea
 CFG_ARGS = "cfg_args"
 """The file name the 3DGS-family trainers write their settings to, in the model folder."""
 
-_SOURCE_SIGNS = ("sparse", "transforms.json", "images", "language_features")
+_SOURCE_SIGNS = (
+    "sparse",
+    "transforms.json",
+    "transforms_train.json",
+    "images",
+    "language_features",
+)
 
 
 def read_cfg_args(path: str | os.PathLike[str]) -> dict[str, Any]:

@@ -22,7 +22,7 @@ from thgs.scene.colmap import read_colmap
 from thgs.scene.gaussians import Gaussians
 from thgs.scene.gsplat_checkpoint import find_gsplat_checkpoint, read_gsplat_checkpoint
 from thgs.scene.gsplat_config import find_gsplat_source, gsplat_config_file, read_gsplat_config
-from thgs.scene.images import find_images, fit_to_images
+from thgs.scene.images import IMAGE_EXTENSIONS, find_images, fit_to_images
 from thgs.scene.ply import read_ply
 from thgs.scene.transforms_json import read_transforms_json
 
@@ -31,6 +31,11 @@ __all__ = ["Scene", "camera_disagreement", "load_cameras", "load_scene"]
 logger = logging.getLogger(__name__)
 
 _ITERATION = re.compile(r"^iteration_(\d+)$")
+
+_TRAIN_SPLIT = "transforms_train.json"
+"""The Blender split file of the training views (NeRF Blender scenes, OpenGaussian's ScanNet)."""
+_TEST_SPLIT = "transforms_test.json"
+"""Its held-out views: never read as cameras (see :func:`load_cameras`)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -97,11 +102,21 @@ def load_cameras(
     """Read the cameras of a source: a camera file, or a folder holding one.
 
     A folder is searched, in this order, for a COLMAP model in the folder itself, in ``sparse/0/``
-    or in ``sparse/``, then for ``transforms.json`` and ``cameras.json``. A folder holding both a
-    COLMAP model and a ``transforms.json`` must describe the same cameras in both (else an
-    :class:`InputError` says what differs and that ``--source`` chooses). A file is read by its
-    content: a JSON list is a 3DGS ``cameras.json``, a JSON object with ``frames`` a
-    ``transforms.json``.
+    or in ``sparse/``, then for ``transforms_train.json``, ``transforms.json`` and
+    ``cameras.json``. A folder holding both a COLMAP model and a ``transforms.json`` must describe
+    the same cameras in both (else an :class:`InputError` says what differs and that ``--source``
+    chooses). A file is read by its content: a JSON list is a 3DGS ``cameras.json``, a JSON
+    object with ``frames`` a ``transforms.json``.
+
+    A folder with ``transforms_train.json`` (the NeRF Blender split, and OpenGaussian's ScanNet
+    scenes: ``color/``, ``transforms_train.json``, ``transforms_test.json``) gives the views of
+    ``transforms_train.json`` only: the 3DGS-family trainers read this split before
+    ``transforms.json``, and OpenGaussian trains its ScanNet scenes with ``--eval``, which holds
+    out ``transforms_test.json`` from training and from its language association, so thgs lifts
+    from the same views. Every frame's image must exist (OpenGaussian skips missing ones
+    silently; thgs refuses them); frames with NaN or infinite poses (ScanNet's lost tracking) are
+    left out with a warning. A ``transforms.json`` beside it must hold every train frame with the
+    same cameras.
 
     Images: for COLMAP and cameras.json, the folder ``source/<images>`` must hold every camera's
     image (``images=None`` means ``images/``, checked only when present; a folder named
@@ -134,6 +149,11 @@ def load_cameras(
                 )
             )
         found.append(f"COLMAP model {camera_path} ({len(cameras)} registered images)")
+        if source.is_dir() and (source / _TRAIN_SPLIT).is_file():
+            found.append(
+                f"{source / _TRAIN_SPLIT} not read: the COLMAP model comes first, as in the "
+                "3DGS-family trainers"
+            )
         image_root = source / (images or "images")
     else:
         document = load_json(camera_path)
@@ -143,12 +163,18 @@ def load_cameras(
             if source.is_dir():
                 image_root = source / (images or "images")
         elif isinstance(document, dict) and "frames" in document:
-            cameras = read_transforms_json(
-                camera_path, undo_applied_transform=undo_applied_transform
-            )
-            found.append(f"transforms.json {camera_path} ({len(cameras)} frames)")
-            if any(path is not None for path in find_images(cameras, camera_path.parent)):
-                image_root = camera_path.parent
+            if source.is_dir() and camera_path.name == _TRAIN_SPLIT:
+                cameras = _read_train_split(
+                    camera_path, len(document["frames"]), undo_applied_transform, found
+                )
+                image_root = source
+            else:
+                cameras = read_transforms_json(
+                    camera_path, undo_applied_transform=undo_applied_transform
+                )
+                found.append(f"transforms.json {camera_path} ({len(cameras)} frames)")
+                if any(path is not None for path in find_images(cameras, camera_path.parent)):
+                    image_root = camera_path.parent
         else:
             raise InputError(
                 camera_path, "neither a 3DGS cameras.json (a list) nor a transforms.json (frames)"
@@ -226,17 +252,67 @@ def camera_disagreement(first: Cameras, second: Cameras, *, subset: bool = False
     return None
 
 
+def _read_train_split(
+    path: Path, frames: int, undo_applied_transform: bool, found: list[str]
+) -> Cameras:
+    """The cameras of a folder's ``transforms_train.json`` (see :func:`load_cameras`), checked
+    against its images and against a ``transforms.json`` beside it; lines go to ``found``."""
+    folder = path.parent
+    cameras = read_transforms_json(
+        path, undo_applied_transform=undo_applied_transform, skip_invalid_poses=True
+    )
+    missing = [
+        name for name, image in zip(cameras.names, find_images(cameras, folder)) if image is None
+    ]
+    if missing:
+        raise InputError(
+            path,
+            f"{len(missing)} of {len(cameras)} frames name images that do not exist (first: "
+            f"{missing[:3]}, looked for under {folder} as written or with "
+            f"{', '.join(IMAGE_EXTENSIONS[:2])}, …); restore them or remove those frames",
+        )
+    found.append(f"{_TRAIN_SPLIT} {path} ({len(cameras)} frames, the training views)")
+    if frames > len(cameras):
+        found.append(
+            f"{frames - len(cameras)} frames of {path.name} left out: their transform_matrix is "
+            "not finite (ScanNet's frames with lost tracking)"
+        )
+    test = folder / _TEST_SPLIT
+    if test.is_file():
+        found.append(
+            f"{test} not read: its views are held out, as OpenGaussian trains its ScanNet scenes "
+            "(--eval: train split only)"
+        )
+    whole = folder / "transforms.json"
+    if whole.is_file():
+        every = read_transforms_json(whole, undo_applied_transform=undo_applied_transform)
+        outside = sorted(set(cameras.stems) - set(every.stems))
+        problem = (
+            f"{len(outside)} train frames are not in {whole.name} (e.g. {outside[:3]})"
+            if outside
+            else camera_disagreement(every, cameras, subset=True)
+        )
+        if problem is not None:
+            raise InputError(
+                folder,
+                f"holds {whole.name} and {path.name}, and they disagree: {problem}; choose one "
+                f"with --source {whole} or --source {path}",
+            )
+        found.append(f"{whole} describes the same cameras; reading {path.name}")
+    return cameras
+
+
 def _find_cameras(folder: Path) -> Path:
     for candidate in (folder, folder / "sparse" / "0", folder / "sparse"):
         if (candidate / "cameras.bin").is_file() or (candidate / "cameras.txt").is_file():
             return candidate
-    for candidate in (folder / "transforms.json", folder / "cameras.json"):
+    for candidate in (folder / _TRAIN_SPLIT, folder / "transforms.json", folder / "cameras.json"):
         if candidate.is_file():
             return candidate
     raise InputError(
         folder,
-        "no cameras found: expected a COLMAP model (sparse/0/ or sparse/), transforms.json or "
-        "cameras.json",
+        "no cameras found: expected a COLMAP model (sparse/0/ or sparse/), transforms_train.json, "
+        "transforms.json or cameras.json",
     )
 
 
@@ -287,7 +363,8 @@ def load_scene(
             its ``cfg.yml``/``cfg.json`` names, see
             :func:`thgs.scene.gsplat_config.find_gsplat_source`, or from ``source``).
         source: where the cameras come from: the training data folder (COLMAP ``sparse/0`` +
-            ``images/``, or ``transforms.json``) or a camera file. See :func:`load_cameras`.
+            ``images/``, ``transforms_train.json`` + its images, or ``transforms.json``) or a
+            camera file. See :func:`load_cameras`.
             Default: for a model folder, the training data its ``cfg_args`` names when it is
             found here (:func:`thgs.scene.cfg_args.find_model_source`), else the model's
             ``cameras.json``; for a gsplat result folder (or a checkpoint in its ``ckpts/``),

@@ -10,6 +10,11 @@ Layout::
                  "transform_matrix": [[…4×4…]],    # camera→world, OpenGL axes
                  "fl_x": …, …}]}                   # per-frame intrinsics override global ones
 
+The NeRF Blender scenes, and OpenGaussian's ScanNet scenes, split the frames into
+``transforms_train.json`` and ``transforms_test.json`` of this same layout, with ``file_path``
+given without an extension (``color/0``; the image is ``color/0.jpg``).
+:func:`thgs.scene.load_cameras` decides which of them a folder's cameras come from.
+
 Missing values are completed as the 3DGS Blender loader does: ``fl_x`` from ``camera_angle_x``,
 ``fl_y = fl_x`` unless ``fl_y`` or ``camera_angle_y`` is given, ``cx, cy`` at the image centre,
 ``w, h`` from the image file. Poses are converted once to world→camera OpenCV axes.
@@ -82,6 +87,15 @@ def _image_size(root: Path, file_path: str, path: Path, where: str) -> tuple[int
         raise InputError(found, f"not a readable image ({exc})") from exc
 
 
+def _not_finite(matrix: Any) -> bool:
+    """Whether ``matrix`` is numeric but holds NaN or infinite values (ScanNet's lost poses)."""
+    try:
+        array = np.asarray(matrix, dtype=np.float64)
+    except (TypeError, ValueError):
+        return False
+    return not bool(np.isfinite(array).all())
+
+
 def _coefficients(values: dict[str, Any], path: Path, where: str) -> np.ndarray:
     model = values.get("camera_model")
     if values.get("is_fisheye") or (model is not None and model not in _PERSPECTIVE_MODELS):
@@ -136,9 +150,13 @@ def _intrinsics(
 
 
 def read_transforms_json(
-    path: str | os.PathLike[str], *, undo_applied_transform: bool = False
+    path: str | os.PathLike[str],
+    *,
+    undo_applied_transform: bool = False,
+    skip_invalid_poses: bool = False,
 ) -> Cameras:
-    """Read a nerfstudio / instant-ngp ``transforms.json``.
+    """Read a nerfstudio / instant-ngp ``transforms.json`` (or a Blender split file such as
+    ``transforms_train.json``).
 
     Args:
         path: the JSON file; image paths in it are relative to its folder.
@@ -146,6 +164,10 @@ def read_transforms_json(
             from COLMAP's and records the rotation as ``applied_transform``; True maps the poses
             back to the COLMAP world frame (what a 3DGS model trained from that COLMAP model
             uses). False (default) keeps the file's frame, as the 3DGS Blender loader does.
+        skip_invalid_poses: leave out, with a warning, the frames whose ``transform_matrix``
+            holds NaN or infinite values instead of refusing the file: ScanNet marks the frames
+            where its tracking was lost with ``-inf`` poses, and OpenGaussian's ScanNet release
+            keeps them (scene0200_00, scene0400_00). A file with no valid frame is still an error.
 
     Returns:
         :class:`Cameras` in file order; names are the ``file_path`` values (without a leading ./).
@@ -178,12 +200,16 @@ def read_transforms_json(
             path, "undo_applied_transform was asked but the file has no applied_transform"
         )
     viewmats, Ks, coeffs, widths, heights, names = [], [], [], [], [], []
+    invalid: list[str] = []
     for index, frame in enumerate(data["frames"]):
         if not isinstance(frame, dict) or not isinstance(frame.get("file_path"), str):
             raise InputError(path, f"frame {index} has no 'file_path' string")
         file_path = frame["file_path"]
         name = file_path[2:] if file_path.startswith("./") else file_path
         where = f"frame {index} ({file_path!r})"
+        if skip_invalid_poses and _not_finite(frame.get("transform_matrix")):
+            invalid.append(name)
+            continue
         values = {**shared, **{key: frame[key] for key in _INTRINSIC_KEYS if key in frame}}
         K, width, height = _intrinsics(values, root, name, path, where)
         coeffs.append(_coefficients(values, path, where))
@@ -204,6 +230,15 @@ def read_transforms_json(
         widths.append(width)
         heights.append(height)
         names.append(name)
+    if invalid:
+        if not names:
+            raise InputError(path, f"all {len(invalid)} frames have NaN or infinite poses")
+        logger.warning(
+            "%s: %d frames left out, their transform_matrix is not finite (first: %s)",
+            path,
+            len(invalid),
+            ", ".join(invalid[:5]),
+        )
     if any(row.any() for row in coeffs):
         logger.info("%s: cameras with lens distortion; masks are undistorted into pinholes", path)
     cameras = Cameras.from_distorted(viewmats, Ks, coeffs, widths, heights, names)

@@ -8,7 +8,8 @@ Usage::
     scene = generate_scene(preset("synth-small", seed=1))
     write_dataset("out/synth-small", scene, MiniLMEncoder())
 
-See docs/synthetic.md.
+:func:`write_opengaussian_scannet` lays a dataset out as OpenGaussian's ScanNet scenes
+(:mod:`thgs.synthetic.layouts`). See docs/synthetic.md.
 """
 
 from thgs.synthetic.dataset import (
@@ -20,6 +21,7 @@ from thgs.synthetic.dataset import (
     render_view,
     write_dataset,
 )
+from thgs.synthetic.layouts import write_opengaussian_scannet
 from thgs.synthetic.oracle import FaultRates, LevelMasks, OracleConfig, oracle_guidance
 from thgs.synthetic.scene import PRESETS, SceneConfig, SyntheticScene, generate_scene, preset
 
@@ -40,4 +42,5 @@ __all__ = [
     "preset",
     "render_view",
     "write_dataset",
+    "write_opengaussian_scannet",
 ]
