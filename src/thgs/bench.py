@@ -34,7 +34,7 @@ from typing import Any, TypeVar
 import numpy as np
 import torch
 
-from thgs._atomic import atomic_output
+from thgs._atomic import atomic_output, staging_folder
 from thgs.demo import default_cache, open_synthetic_dataset, synthetic_dataset
 from thgs.device import resolve_device
 from thgs.errors import InputError, ThgsError
@@ -616,14 +616,29 @@ def require_matplotlib():
 
 
 def write_bench(out: str | os.PathLike[str], report: BenchReport) -> tuple[Path, Path, Path]:
-    """Write ``bench.json``, ``bench.md`` and ``bench-time.png`` into ``out`` (atomically)."""
+    """Write ``bench.json``, ``bench.md`` and ``bench-time.png`` into ``out``: all three or none.
+
+    They are first written into a hidden folder beside ``out`` and then moved in; a failure
+    (a full disk, Ctrl-C) while writing them leaves ``out`` as it was, and one while moving them
+    removes those already moved.
+    """
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise InputError(out, "exists and is not a folder")
-    out.mkdir(parents=True, exist_ok=True)
     paths = (out / "bench.json", out / "bench.md", out / "bench-time.png")
-    write_json(paths[0], report.to_json())
-    with atomic_output(paths[1], "w") as handle:
-        handle.write(report.markdown())
-    report.plot(paths[2])
+    with staging_folder(out) as stage:
+        write_json(stage / paths[0].name, report.to_json())
+        with atomic_output(stage / paths[1].name, "w") as handle:
+            handle.write(report.markdown())
+        report.plot(stage / paths[2].name)
+        out.mkdir(parents=True, exist_ok=True)
+        moved: list[Path] = []
+        try:
+            for path in paths:
+                os.replace(stage / path.name, path)
+                moved.append(path)
+        except BaseException:
+            for path in moved:
+                path.unlink(missing_ok=True)
+            raise
     return paths
