@@ -877,3 +877,60 @@ def test_ctrl_c_while_bench_writes_its_report_leaves_none_of_it(
     ]
     assert json.loads((out / "bench.json").read_text()) == json.loads(json.dumps(report.to_json()))
     assert (out / "bench.md").read_text() == report.markdown()
+
+
+@pytest.mark.parametrize("replace_call", range(1, 5))
+def test_ctrl_c_at_any_rename_of_eval_leaves_no_report(
+    replace_call, small_dataset, small_field, tmp_path, capsys, monkeypatch
+):
+    """eval's report and its table are written to a hidden folder (renames 1–2) and moved in
+    together (3–4): Ctrl-C at any of them leaves neither and no temporary."""
+    real, calls = os.replace, []
+
+    def interrupted(source, target):
+        calls.append(Path(target).name)
+        if len(calls) == replace_call:
+            raise KeyboardInterrupt
+        real(source, target)
+
+    out = tmp_path / "out"
+    argv = ["eval", str(small_dataset), str(small_field), "--protocol", "hierarchy"]
+    argv += ["-o", str(out / "r.json")]
+    monkeypatch.setattr(os, "replace", interrupted)
+    code, _, err = run(argv, capsys)
+    monkeypatch.setattr(os, "replace", real)
+    assert code == 130 and err.strip().splitlines()[-1] == "error: interrupted", err
+    assert len(calls) == replace_call and _written(tmp_path) == []
+    code, _, err = run(argv, capsys)
+    assert code == 0, err
+    assert sorted(p.name for p in _written(tmp_path)) == ["r.json", "r.md"]
+
+
+def test_eval_mean_checks_its_output_first_and_leaves_nothing_when_interrupted(
+    tmp_path, capsys, monkeypatch
+):
+    reports = [tmp_path / "a.json", tmp_path / "b.json"]
+    for path, miou in zip(reports, (0.25, 0.75)):
+        path.write_text(json.dumps({"results": [{"protocol": "lerf", "metrics": {"miou": miou}}]}))
+    folder = tmp_path / "taken"
+    folder.mkdir()
+    code, out, err = run(["eval-mean", *map(str, reports), "-o", str(folder)], capsys)
+    err = " ".join(err.split())
+    assert (
+        code == 2
+        and out == ""
+        and err == f"error: {folder}: is a folder; -o names the file to write"
+    )
+
+    def interrupted(source, target):
+        raise KeyboardInterrupt
+
+    means = tmp_path / "out" / "means.json"
+    monkeypatch.setattr(os, "replace", interrupted)
+    code, _, err = run(["eval-mean", *map(str, reports), "-o", str(means)], capsys)
+    monkeypatch.undo()
+    assert code == 130 and err.strip().splitlines()[-1] == "error: interrupted", err
+    assert _written(tmp_path / "out") == [] and list(folder.iterdir()) == []
+    code, _, err = run(["eval-mean", *map(str, reports), "-o", str(means)], capsys)
+    assert code == 0, err
+    assert json.loads(means.read_text())["means"] == {"lerf": {"miou": 0.5}}

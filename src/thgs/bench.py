@@ -34,7 +34,7 @@ from typing import Any, TypeVar
 import numpy as np
 import torch
 
-from thgs._atomic import atomic_output, staging_folder
+from thgs._atomic import atomic_files, atomic_output
 from thgs.demo import default_cache, open_synthetic_dataset, synthetic_dataset
 from thgs.device import resolve_device
 from thgs.errors import InputError, ThgsError
@@ -616,29 +616,15 @@ def require_matplotlib():
 
 
 def write_bench(out: str | os.PathLike[str], report: BenchReport) -> tuple[Path, Path, Path]:
-    """Write ``bench.json``, ``bench.md`` and ``bench-time.png`` into ``out``: all three or none.
-
-    They are first written into a hidden folder beside ``out`` and then moved in; a failure
-    (a full disk, Ctrl-C) while writing them leaves ``out`` as it was, and one while moving them
-    removes those already moved.
-    """
+    """Write ``bench.json``, ``bench.md`` and ``bench-time.png`` into ``out``: all three or none
+    (:func:`thgs._atomic.atomic_files`)."""
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise InputError(out, "exists and is not a folder")
     paths = (out / "bench.json", out / "bench.md", out / "bench-time.png")
-    with staging_folder(out) as stage:
-        write_json(stage / paths[0].name, report.to_json())
-        with atomic_output(stage / paths[1].name, "w") as handle:
+    with atomic_files(paths) as (json_path, markdown_path, plot_path):
+        write_json(json_path, report.to_json())
+        with atomic_output(markdown_path, "w") as handle:
             handle.write(report.markdown())
-        report.plot(stage / paths[2].name)
-        out.mkdir(parents=True, exist_ok=True)
-        moved: list[Path] = []
-        try:
-            for path in paths:
-                os.replace(stage / path.name, path)
-                moved.append(path)
-        except BaseException:
-            for path in moved:
-                path.unlink(missing_ok=True)
-            raise
+        report.plot(plot_path)
     return paths
