@@ -15,6 +15,7 @@ import pytest
 
 from thgs._atomic import (
     _HOST,
+    atomic_files,
     atomic_folder,
     atomic_output,
     remove_stale_temporaries,
@@ -130,6 +131,44 @@ def test_staging_folder_is_always_removed(tmp_path):
     with pytest.raises(ValueError), staging_folder(tmp_path / "x") as folder:
         raise ValueError
     assert os.listdir(tmp_path) == []
+
+
+def test_files_are_moved_in_together(tmp_path):
+    (tmp_path / "b.md").write_text("old b")
+    with atomic_files([tmp_path / "a.json", tmp_path / "b.md"]) as (a, b):
+        a.write_text("a")
+        b.write_text("b")
+        assert sorted(os.listdir(tmp_path)) == [hidden(tmp_path)[0], "b.md"]
+    assert sorted(os.listdir(tmp_path)) == ["a.json", "b.md"]
+    assert (tmp_path / "a.json").read_text() == "a" and (tmp_path / "b.md").read_text() == "b"
+    for paths in ([], [tmp_path / "a", tmp_path / "x" / "b"], [tmp_path / "a", tmp_path / "a"]):
+        with pytest.raises(ValueError), atomic_files(paths):
+            pass
+
+
+@pytest.mark.parametrize("interrupted_move", [None, 1, 2])
+def test_files_failure_leaves_none_of_them(tmp_path, monkeypatch, interrupted_move):
+    """Ctrl-C while the files are written (None) or at the first or second move: none of the
+    new files is left, nor any temporary; a file it did not reach keeps its old content."""
+    (tmp_path / "b.md").write_text("old b")
+    real, moves = os.replace, []
+
+    def replace(source, target):
+        moves.append(target)
+        if len(moves) == interrupted_move:
+            raise KeyboardInterrupt
+        real(source, target)
+
+    monkeypatch.setattr(os, "replace", replace)
+    files = [tmp_path / "a", tmp_path / "b.md"]
+    with pytest.raises(KeyboardInterrupt), atomic_files(files) as (a, b):
+        a.write_text("a")
+        b.write_text("b")
+        if interrupted_move is None:
+            raise KeyboardInterrupt
+    # at the second move, the first file moved in is removed again
+    assert len(moves) == (interrupted_move or 0)
+    assert os.listdir(tmp_path) == ["b.md"] and (tmp_path / "b.md").read_text() == "old b"
 
 
 def test_concurrent_writers_to_one_target(tmp_path):

@@ -778,3 +778,159 @@ def test_ctrl_c_while_writing_leaves_nothing(
     assert code == 130 and err.strip().splitlines()[-1] == "error: interrupted", err
     left = [p for p in out.rglob("*") if p.is_file() or p.name.startswith(".")]
     assert left == [], left  # (the demo's cache folder may exist, empty)
+
+
+def _written(folder: Path) -> list[Path]:
+    """Every file, and every hidden (temporary) name, under ``folder``."""
+    return [p for p in folder.rglob("*") if p.is_file() or p.name.startswith(".")]
+
+
+@pytest.mark.parametrize("stage", ["generate", "build"])
+def test_ctrl_c_during_bench_leaves_no_report_and_no_half_dataset(
+    stage, tmp_path, capsys, monkeypatch
+):
+    """Ctrl-C while bench generates its synthetic dataset (after the first view is written) or
+    builds a variant: exit 130, one error line, no report, and the cache holds the whole dataset
+    or none of it."""
+    import thgs.bench
+    import thgs.synthetic.dataset
+    from thgs.demo import open_synthetic_dataset
+    from thgs.text import MINILM_SPACE, load_text_encoder
+
+    real_guidance, calls = thgs.synthetic.dataset.oracle_guidance, []
+
+    def second_view_interrupted(*args, **kwargs):
+        calls.append(args[0])
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real_guidance(*args, **kwargs)
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    if stage == "generate":
+        monkeypatch.setattr(thgs.synthetic.dataset, "oracle_guidance", second_view_interrupted)
+    else:
+        monkeypatch.setattr(thgs.bench, "build_levels", interrupted)
+    out, cache = tmp_path / "out", tmp_path / "cache"
+    argv = ["bench", "-o", str(out), "--presets", "synth-small", "--gaussians", "2000"]
+    argv += ["--views", "4", "--context-mixes", "0", "--variants", "full", "--cache", str(cache)]
+    code, _, err = run(argv, capsys)
+    assert code == 130 and err.strip().splitlines()[-1] == "error: interrupted", err
+    assert not out.exists()
+    dataset = cache / "synth-small-seed0-2000g-4v"
+    if stage == "generate":
+        assert len(calls) == 2 and _written(tmp_path) == []
+        return
+    # the dataset was finished before the build: whole, readable, and nothing hidden beside it
+    assert [p.name for p in cache.iterdir()] == [dataset.name]
+    assert not [p for p in dataset.rglob(".*")]
+    scene, guidance = open_synthetic_dataset(dataset, load_text_encoder(MINILM_SPACE))
+    assert (len(scene.gaussians), len(scene.cameras), len(guidance)) == (2000, 4, 4)
+
+
+@pytest.mark.parametrize("replace_call", range(1, 7))
+def test_ctrl_c_while_bench_writes_its_report_leaves_none_of_it(
+    replace_call, tmp_path, capsys, monkeypatch
+):
+    """bench's three report files are written to a hidden folder (renames 1–3) and then moved
+    in (renames 4–6): Ctrl-C at any of them leaves no report file and no temporary; a rerun
+    writes all three."""
+    from dataclasses import asdict
+
+    import thgs.bench
+    from thgs.bench import BenchConfig, BenchReport, VariantRun
+
+    run_ = VariantRun(
+        preset="synth-small", seed=0, variant="full", kind="2dgs", severity=0.5,
+        context_mix=0.0, gaussians=2000, views=4, stages={"lift": 1.5, "partition": 0.5},
+        lift_shared=False, seconds=2.0, peak_gib=0.5, gpu_peak_gib=None,
+        region_counts=(60, 40, 20, 10), quality={"lerf miou": 0.6, "lerf-paper miou": 0.5},
+        evaluation_seconds=1.0,
+    )  # fmt: skip
+    machine = {"processor": "x86_64", "cpus": 2, "torch_threads": 2, "cuda": None}
+    report = BenchReport((run_,), machine, asdict(BenchConfig(presets=("synth-small",))))
+    monkeypatch.setattr(thgs.bench, "run_bench", lambda *args, **kwargs: report)
+    real, calls = os.replace, []
+
+    def interrupted(source, target):
+        calls.append(Path(target).name)
+        if len(calls) == replace_call:
+            raise KeyboardInterrupt
+        real(source, target)
+
+    out = tmp_path / "out"
+    argv = ["bench", "-o", str(out), "--presets", "synth-small", "--variants", "full"]
+    monkeypatch.setattr(os, "replace", interrupted)
+    code, _, err = run(argv, capsys)
+    monkeypatch.setattr(os, "replace", real)
+    assert code == 130 and err.strip().splitlines()[-1] == "error: interrupted", err
+    assert len(calls) == replace_call and _written(tmp_path) == []
+    if replace_call >= 4:
+        assert calls[3:] == ["bench.json", "bench.md", "bench-time.png"][: replace_call - 3]
+    code, _, err = run(argv, capsys)
+    assert code == 0, err
+    assert sorted(p.name for p in _written(tmp_path)) == [
+        "bench-time.png",
+        "bench.json",
+        "bench.md",
+    ]
+    assert json.loads((out / "bench.json").read_text()) == json.loads(json.dumps(report.to_json()))
+    assert (out / "bench.md").read_text() == report.markdown()
+
+
+@pytest.mark.parametrize("replace_call", range(1, 5))
+def test_ctrl_c_at_any_rename_of_eval_leaves_no_report(
+    replace_call, small_dataset, small_field, tmp_path, capsys, monkeypatch
+):
+    """eval's report and its table are written to a hidden folder (renames 1–2) and moved in
+    together (3–4): Ctrl-C at any of them leaves neither and no temporary."""
+    real, calls = os.replace, []
+
+    def interrupted(source, target):
+        calls.append(Path(target).name)
+        if len(calls) == replace_call:
+            raise KeyboardInterrupt
+        real(source, target)
+
+    out = tmp_path / "out"
+    argv = ["eval", str(small_dataset), str(small_field), "--protocol", "hierarchy"]
+    argv += ["-o", str(out / "r.json")]
+    monkeypatch.setattr(os, "replace", interrupted)
+    code, _, err = run(argv, capsys)
+    monkeypatch.setattr(os, "replace", real)
+    assert code == 130 and err.strip().splitlines()[-1] == "error: interrupted", err
+    assert len(calls) == replace_call and _written(tmp_path) == []
+    code, _, err = run(argv, capsys)
+    assert code == 0, err
+    assert sorted(p.name for p in _written(tmp_path)) == ["r.json", "r.md"]
+
+
+def test_eval_mean_checks_its_output_first_and_leaves_nothing_when_interrupted(
+    tmp_path, capsys, monkeypatch
+):
+    reports = [tmp_path / "a.json", tmp_path / "b.json"]
+    for path, miou in zip(reports, (0.25, 0.75)):
+        path.write_text(json.dumps({"results": [{"protocol": "lerf", "metrics": {"miou": miou}}]}))
+    folder = tmp_path / "taken"
+    folder.mkdir()
+    code, out, err = run(["eval-mean", *map(str, reports), "-o", str(folder)], capsys)
+    err = " ".join(err.split())
+    assert (
+        code == 2
+        and out == ""
+        and err == f"error: {folder}: is a folder; -o names the file to write"
+    )
+
+    def interrupted(source, target):
+        raise KeyboardInterrupt
+
+    means = tmp_path / "out" / "means.json"
+    monkeypatch.setattr(os, "replace", interrupted)
+    code, _, err = run(["eval-mean", *map(str, reports), "-o", str(means)], capsys)
+    monkeypatch.undo()
+    assert code == 130 and err.strip().splitlines()[-1] == "error: interrupted", err
+    assert _written(tmp_path / "out") == [] and list(folder.iterdir()) == []
+    code, _, err = run(["eval-mean", *map(str, reports), "-o", str(means)], capsys)
+    assert code == 0, err
+    assert json.loads(means.read_text())["means"] == {"lerf": {"miou": 0.5}}

@@ -612,6 +612,66 @@ def test_cli_reaches_sams_thresholds_and_warns_without_masks(tmp_path, models, m
     assert all(len(view.features) == 0 for view in views)
 
 
+class InterruptedSegmenter(ColourSegmenter):
+    """:class:`ColourSegmenter`, and Ctrl-C when it decodes prompts in its second image."""
+
+    def __init__(self) -> None:
+        self.images = 0
+
+    def embed(self, image: np.ndarray) -> np.ndarray:
+        self.images += 1
+        return image
+
+    def decode(self, image: np.ndarray, points: torch.Tensor):
+        if self.images == 2:
+            raise KeyboardInterrupt
+        return super().decode(image, points)
+
+
+def test_cli_ctrl_c_mid_image_resumes_to_identical_files(tmp_path, models, monkeypatch, capsys):
+    """Ctrl-C while SAM works on the second image: exit 130 and one error line; the first
+    view's files stay (a view is finished when its _s.npy exists), the second leaves no file
+    and no temporary, and the same command run again ends with the bytes of an uninterrupted
+    run."""
+    import thgs.guidance.preprocess.models as preprocess_module
+
+    _label_images(tmp_path, count=3)
+    argv = ["preprocess", str(tmp_path), "--clip", str(models["clip"]), "--points-per-side", "4"]
+    argv += ["--crop-layers", "0", "--min-region-area", "0"]  # one SAM image per view
+    reference = tmp_path / "uninterrupted"
+    monkeypatch.setattr(preprocess_module, "PointSegmenter", lambda *_, **__: ColourSegmenter())
+    code, _, err = _cli([*argv, "-o", str(reference)], capsys)
+    assert code == 0, err
+
+    monkeypatch.setattr(
+        preprocess_module, "PointSegmenter", lambda *_, **__: InterruptedSegmenter()
+    )
+    code, out, err = _cli(argv, capsys)
+    assert code == 130 and err.endswith("error: interrupted") and err.count("error:") == 1, err
+    output = tmp_path / "language_features"
+    assert sorted(path.name for path in output.iterdir()) == [
+        "embedding.json",
+        "frame_000_f.npy",
+        "frame_000_s.npy",
+        MANIFEST_FILE,
+    ]
+    assert sorted(path.name for path in tmp_path.iterdir()) == [
+        "images",
+        "language_features",
+        "uninterrupted",
+    ]
+
+    monkeypatch.setattr(preprocess_module, "PointSegmenter", lambda *_, **__: ColourSegmenter())
+    code, out, err = _cli(argv, capsys)
+    assert code == 0, err
+    assert "done 2, skipped 1 finished" in " ".join(out.split())
+    files = sorted(path.name for path in reference.iterdir())
+    assert sorted(path.name for path in output.iterdir()) == files
+    assert len(files) == 3 * 2 + 2
+    for name in files:
+        assert (output / name).read_bytes() == (reference / name).read_bytes(), name
+
+
 @pytest.mark.parametrize(
     ("flag", "value", "message"),
     [

@@ -361,3 +361,27 @@ def test_a_failure_part_way_removes_the_files_already_written(state, tmp_path, m
     with pytest.raises(InputError, match="No space left on device"):
         state.export(tmp_path / "out")
     assert list((tmp_path / "out").iterdir()) == []
+
+
+@pytest.mark.parametrize("replace_call", [1, 3, 4])
+def test_ctrl_c_during_an_export_leaves_none_of_its_files(
+    state, tmp_path, monkeypatch, replace_call
+):
+    """thgs view's export, interrupted at its first, third or last (the summary's) rename: no
+    file of the selection and no temporary is left; the next export writes all four."""
+    state.ask("mug")
+    real, calls = os.replace, []
+
+    def interrupted(source, target):
+        calls.append(os.path.basename(target))
+        if len(calls) == replace_call:
+            raise KeyboardInterrupt
+        real(source, target)
+
+    monkeypatch.setattr(os, "replace", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        state.export(tmp_path / "out")
+    monkeypatch.setattr(os, "replace", real)
+    assert len(calls) == replace_call and os.listdir(tmp_path / "out") == []
+    paths = state.export(tmp_path / "out")
+    assert sorted(os.listdir(tmp_path / "out")) == sorted(p.name for p in paths)

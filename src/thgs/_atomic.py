@@ -1,7 +1,8 @@
 """Atomic output: write into a hidden sibling of the target, then rename it into place.
 
-One writer for files (:func:`atomic_output`) and one for folders (:func:`atomic_folder`); a
-reader never sees a half-written result, and a failure (an exception, Ctrl-C) leaves the target
+One writer for files (:func:`atomic_output`), one for a set of files that belong together
+(:func:`atomic_files`) and one for folders (:func:`atomic_folder`); a reader never sees a
+half-written result, and a failure (an exception, Ctrl-C) leaves the target
 as it was and removes the temporary. The temporaries are created with the default modes
 (0o666 for files, 0o777 for folders), which the kernel reduces by the process's umask exactly
 as for a file or folder created plainly; the umask is never read, so no ``os.umask`` call
@@ -25,13 +26,19 @@ import re
 import secrets
 import shutil
 import socket
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import IO, TypeVar
 
 from thgs.errors import InputError
 
-__all__ = ["atomic_folder", "atomic_output", "remove_stale_temporaries", "staging_folder"]
+__all__ = [
+    "atomic_files",
+    "atomic_folder",
+    "atomic_output",
+    "remove_stale_temporaries",
+    "staging_folder",
+]
 
 T = TypeVar("T")
 
@@ -166,6 +173,38 @@ def staging_folder(beside: str | os.PathLike[str]) -> Iterator[Path]:
             yield tmp
         finally:
             shutil.rmtree(tmp, ignore_errors=True)
+
+
+@contextlib.contextmanager
+def atomic_files(paths: Sequence[str | os.PathLike[str]]) -> Iterator[tuple[Path, ...]]:
+    """Yield a hidden path to write for each of ``paths`` (files of one folder); on success move
+    them all into place, in order: all of them or none.
+
+    If the body raises, nothing is moved and the folder is left as it was; if the moves are
+    interrupted (Ctrl-C, a full disk), the files already moved are removed again. The files
+    are staged in a hidden folder inside their folder (created if missing).
+
+    Raises:
+        ValueError: ``paths`` is empty, not all in one folder, or names a file twice.
+    """
+    targets = [Path(path) for path in paths]
+    if not targets or len({target.parent for target in targets}) != 1:
+        raise ValueError(f"atomic_files needs files of one folder, got {targets}")
+    if len({target.name for target in targets}) != len(targets):
+        raise ValueError(f"atomic_files got a file twice: {targets}")
+    folder = targets[0].parent
+    with staging_folder(folder / f"{targets[0].name}.files") as stage:
+        staged = tuple(stage / target.name for target in targets)
+        yield staged
+        moved: list[Path] = []
+        try:
+            for source, target in zip(staged, targets):
+                os.replace(source, target)
+                moved.append(target)
+        except BaseException:
+            for target in moved:
+                target.unlink(missing_ok=True)
+            raise
 
 
 @contextlib.contextmanager

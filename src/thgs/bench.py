@@ -34,7 +34,7 @@ from typing import Any, TypeVar
 import numpy as np
 import torch
 
-from thgs._atomic import atomic_output
+from thgs._atomic import atomic_files, atomic_output
 from thgs.demo import default_cache, open_synthetic_dataset, synthetic_dataset
 from thgs.device import resolve_device
 from thgs.errors import InputError, ThgsError
@@ -616,14 +616,15 @@ def require_matplotlib():
 
 
 def write_bench(out: str | os.PathLike[str], report: BenchReport) -> tuple[Path, Path, Path]:
-    """Write ``bench.json``, ``bench.md`` and ``bench-time.png`` into ``out`` (atomically)."""
+    """Write ``bench.json``, ``bench.md`` and ``bench-time.png`` into ``out``: all three or none
+    (:func:`thgs._atomic.atomic_files`)."""
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise InputError(out, "exists and is not a folder")
-    out.mkdir(parents=True, exist_ok=True)
     paths = (out / "bench.json", out / "bench.md", out / "bench-time.png")
-    write_json(paths[0], report.to_json())
-    with atomic_output(paths[1], "w") as handle:
-        handle.write(report.markdown())
-    report.plot(paths[2])
+    with atomic_files(paths) as (json_path, markdown_path, plot_path):
+        write_json(json_path, report.to_json())
+        with atomic_output(markdown_path, "w") as handle:
+            handle.write(report.markdown())
+        report.plot(plot_path)
     return paths

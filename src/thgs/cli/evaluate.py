@@ -75,7 +75,7 @@ def evaluate(
             default; labels of the same aspect ratio at another size are always scaled).
         verbose: log what is loaded and how long it takes.
     """
-    from thgs._atomic import atomic_output
+    from thgs._atomic import atomic_files, atomic_output
     from thgs.eval.dataset import check_ground_truth_scene, evaluate_dataset, find_ground_truth
     from thgs.eval.protocols import get_protocol, sources
     from thgs.export import write_json
@@ -119,9 +119,10 @@ def evaluate(
     out = out if out is not None else field.with_suffix(".eval.json")
     document = report.to_json()
     document["info"] = {**document["info"], "dataset": str(dataset), "field": str(field)}
-    write_json(out, document)
-    with atomic_output(out.with_suffix(".md"), "w") as handle:
-        handle.write(report.table() + "\n")
+    with atomic_files([out, out.with_suffix(".md")]) as (json_path, table_path):
+        write_json(json_path, document)
+        with atomic_output(table_path, "w") as handle:
+            handle.write(report.table() + "\n")
     stdout.print(_report_table(f"{ground_truth.scene_name}: {field.name}", report))
     for note in report.notes():
         stdout.print(note, highlight=False)
@@ -149,6 +150,8 @@ def evaluate_mean(
 
     if not reports:
         raise InputError("thgs eval-mean", "give one report per scene")
+    if out is not None:
+        check_output_file(out)
     documents = [load_json(path) for path in reports]
     for path, document in zip(reports, documents):
         if not isinstance(document, dict) or not isinstance(document.get("results"), list):
