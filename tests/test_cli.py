@@ -687,6 +687,24 @@ def test_output_paths_are_checked_before_any_work(
     assert list(folder.iterdir()) == []
 
 
+def test_eval_checks_its_default_report_path_before_any_work(
+    small_dataset, small_field, tmp_path, capsys, monkeypatch
+):
+    import thgs.eval.dataset
+
+    def no_work(*args, **kwargs):
+        raise AssertionError("the work started before the output path was checked")
+
+    monkeypatch.setattr(thgs.eval.dataset, "find_ground_truth", no_work)
+    field = tmp_path / "f.thgs"
+    shutil.copy(small_field, field)
+    (tmp_path / "f.eval.json").mkdir()  # where the report would go without -o
+    code, _, err = run(["eval", str(small_dataset), str(field)], capsys)
+    err = " ".join(err.split())
+    assert code == 2 and f"{tmp_path / 'f.eval.json'}: is a folder" in err, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["f.eval.json", "f.thgs"]
+
+
 def test_eval_refuses_ground_truth_of_another_capture(small_dataset, small_field, tmp_path, capsys):
     other = tmp_path / "other"
     code, _, err = run(["synth", "synth-small", str(other), "--gaussians", "4000",

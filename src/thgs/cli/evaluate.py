@@ -84,9 +84,9 @@ def evaluate(
     from thgs.query import FieldQuery
 
     setup_logging(verbose)
-    if out is not None:
-        check_output_file(out)
-        check_output_file(out.with_suffix(".md"))
+    out = out if out is not None else field.with_suffix(".eval.json")
+    check_output_file(out)
+    check_output_file(out.with_suffix(".md"))
     for name in protocol:
         get_protocol(name)  # an unknown name stops here, before any loading
     ground_truth = find_ground_truth(
