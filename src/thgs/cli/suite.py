@@ -59,8 +59,14 @@ class _ProgressTable:
     def __call__(self, key: str, state: str) -> None:
         labels = {"preprocess": "preprocessing", "build": "building", "eval": "evaluating"}
         self.states[key] = labels.get(state, state)
+        if self.live is None:  # shown once work starts (after Ray, if wanted, answered)
+            self.live = Live(self.render(), console=stderr, refresh_per_second=4)
+            self.live.start()
+        self.live.update(self.render())
+
+    def stop(self) -> None:
         if self.live is not None:
-            self.live.update(self.render())
+            self.live.stop()
 
 
 def _plan_lines(scenes, out, config) -> tuple[list[str], int]:
@@ -158,8 +164,7 @@ def suite(
             sys.exit(1)
         return
     progress = _ProgressTable([scene.key for scene in scenes])
-    with Live(progress.render(), console=stderr, refresh_per_second=4) as live:
-        progress.live = live
+    try:
         report = run_suite(
             scenes,
             out,
@@ -168,6 +173,8 @@ def suite(
             ray_address=None if ray in (None, LOCAL_RAY) else ray,
             progress=progress,
         )
+    finally:
+        progress.stop()
     report, paths = write_suite_report(out, report)
     stdout.print(report.markdown(), markup=False, highlight=False)
     stdout.print("wrote " + ", ".join(str(path) for path in paths))
