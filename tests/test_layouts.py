@@ -17,6 +17,7 @@ from thgs.eval import find_ground_truth, read_lerf_labels
 from thgs.eval.rules import OPENGAUSSIAN_LERF_PROMPTS
 from thgs.field import load_field
 from thgs.scene.cfg_args import find_model_source, read_cfg_args
+from thgs.synthetic.layouts import write_langsplat_lerf
 
 CFG_ARGS = (
     "Namespace(sh_degree=3, source_path={source!r}, model_path={model!r}, images='images', "
@@ -44,31 +45,6 @@ def source_folder(folder: Path) -> Path:
     """A folder that looks like training data (a COLMAP model folder)."""
     (folder / "sparse" / "0").mkdir(parents=True)
     return folder
-
-
-def lay_out(dataset: Path, root: Path, *, source: str, cameras_json: bool = True) -> Path:
-    """The synthetic dataset as LangSplat and the THGS authors distribute real scenes::
-
-        root/lerf_ovs/teatime/{images, sparse/0, language_features}
-        root/lerf_ovs/label/teatime/frame_*.json
-        root/output/teatime/{point_cloud/iteration_30000/point_cloud.ply, cameras.json, cfg_args}
-
-    with cfg_args naming ``source``; returns ``root``.
-    """
-    data = root / "lerf_ovs" / "teatime"
-    data.mkdir(parents=True)
-    for name in ("images", "sparse", "language_features"):
-        (data / name).symlink_to(dataset / name, target_is_directory=True)
-    (root / "lerf_ovs" / "label").mkdir()
-    (root / "lerf_ovs" / "label" / "teatime").symlink_to(
-        dataset / "label", target_is_directory=True
-    )
-    model = root / "output" / "teatime"
-    write_cfg_args(model, source)
-    (model / "point_cloud").symlink_to(dataset / "point_cloud", target_is_directory=True)
-    if cameras_json:
-        shutil.copy(dataset / "cameras.json", model / "cameras.json")
-    return root
 
 
 # cfg_args: parsed, never executed
@@ -186,7 +162,10 @@ def test_no_cfg_args_or_no_source_path(tmp_path):
 def test_build_and_eval_on_the_real_layouts_with_no_flags(
     small_dataset, tmp_path, monkeypatch, capsys
 ):
-    root = lay_out(small_dataset, tmp_path / "work", source="/home/author/data/lerf_ovs/teatime")
+    root = tmp_path / "work"
+    write_langsplat_lerf(
+        small_dataset, root, "teatime", source="/home/author/data/lerf_ovs/teatime", link=True
+    )
     monkeypatch.chdir(root)
     data = root / "lerf_ovs" / "teatime"
 
@@ -240,7 +219,8 @@ def test_build_and_eval_on_the_real_layouts_with_no_flags(
 
 
 def test_source_flag_decides_over_cfg_args(small_dataset, tmp_path, monkeypatch):
-    root = lay_out(small_dataset, tmp_path / "work", source="/nowhere/teatime")
+    root = tmp_path / "work"
+    write_langsplat_lerf(small_dataset, root, "teatime", source="/nowhere/teatime", link=True)
     monkeypatch.chdir(root)
     scene = load_scene("output/teatime", source="lerf_ovs/teatime")
     assert scene.model_source is None and scene.source == Path("lerf_ovs/teatime")
@@ -251,7 +231,10 @@ def test_source_flag_decides_over_cfg_args(small_dataset, tmp_path, monkeypatch)
 
 
 def test_cfg_args_pointing_nowhere(small_dataset, tmp_path, monkeypatch, capsys, caplog):
-    root = lay_out(small_dataset, tmp_path / "work", source="/home/author/data/lerf_ovs/teatime")
+    root = tmp_path / "work"
+    write_langsplat_lerf(
+        small_dataset, root, "teatime", source="/home/author/data/lerf_ovs/teatime", link=True
+    )
     shutil.rmtree(root / "lerf_ovs")
     monkeypatch.chdir(root)
     named = "output/teatime/cfg_args names the source '/home/author/data/lerf_ovs/teatime', "
@@ -293,7 +276,8 @@ def test_cfg_args_pointing_nowhere(small_dataset, tmp_path, monkeypatch, capsys,
 
 
 def test_cfg_args_source_without_cameras_names_the_flag(small_dataset, tmp_path, monkeypatch):
-    root = lay_out(small_dataset, tmp_path / "work", source="lerf_ovs/teatime")
+    root = tmp_path / "work"
+    write_langsplat_lerf(small_dataset, root, "teatime", source="lerf_ovs/teatime", link=True)
     (root / "lerf_ovs" / "teatime" / "sparse").unlink()
     monkeypatch.chdir(root)
     with pytest.raises(InputError) as caught:
@@ -307,7 +291,10 @@ def test_cfg_args_source_without_cameras_names_the_flag(small_dataset, tmp_path,
 
 def test_two_sources_fitting_cfg_args_stop_the_build(small_dataset, tmp_path, monkeypatch, capsys):
     """'teatime' fits the dataset linked beside the model and a folder in the working folder."""
-    root = lay_out(small_dataset, tmp_path / "work", source="/home/author/data/teatime")
+    root = tmp_path / "work"
+    write_langsplat_lerf(
+        small_dataset, root, "teatime", source="/home/author/data/teatime", link=True
+    )
     (root / "teatime").symlink_to(root / "lerf_ovs" / "teatime", target_is_directory=True)
     other = source_folder(root / "output" / "copy" / "teatime")
     monkeypatch.chdir(root / "output" / "copy")
@@ -321,7 +308,8 @@ def test_two_sources_fitting_cfg_args_stop_the_build(small_dataset, tmp_path, mo
 
 
 def test_two_label_folders_are_an_error_naming_both(small_dataset, small_field, tmp_path, capsys):
-    root = lay_out(small_dataset, tmp_path / "work", source="lerf_ovs/teatime")
+    root = tmp_path / "work"
+    write_langsplat_lerf(small_dataset, root, "teatime", source="lerf_ovs/teatime", link=True)
     data = root / "lerf_ovs" / "teatime"
     (data / "label").symlink_to(small_dataset / "label", target_is_directory=True)
     # the same folder reached twice is one folder
@@ -339,7 +327,8 @@ def test_two_label_folders_are_an_error_naming_both(small_dataset, small_field, 
 
 
 def test_labels_parent_without_the_scene(small_dataset, tmp_path):
-    root = lay_out(small_dataset, tmp_path / "work", source="lerf_ovs/teatime")
+    root = tmp_path / "work"
+    write_langsplat_lerf(small_dataset, root, "teatime", source="lerf_ovs/teatime", link=True)
     (root / "lerf_ovs" / "label" / "ramen").mkdir()
     ramen = root / "lerf_ovs" / "ramen"
     ramen.mkdir()

@@ -31,7 +31,7 @@ from thgs.cli import entrypoint
 from thgs.errors import ThgsError
 
 REPOSITORY = "https://github.com/thgs-dev/thgs"
-EXTRAS = {"models", "viewer", "gpu", "demo", "bench", "dev"}
+EXTRAS = {"models", "viewer", "gpu", "demo", "bench", "cluster", "dev"}
 
 
 def _build(kind: str, out: Path) -> Path:

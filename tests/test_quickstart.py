@@ -37,6 +37,7 @@ COMMANDS = {
     "eval-mean": "evaluate_mean",
     "info": "info",
     "bench": "bench",
+    "suite": "suite",
     "synth": "synth",
 }
 """Subcommand → the function of thgs.cli that runs it (as thgs.cli.entrypoint maps them)."""

@@ -13,6 +13,7 @@ from thgs.cli.evaluate import evaluate, evaluate_mean
 from thgs.cli.preprocess import preprocess
 from thgs.cli.query import export, pick, query
 from thgs.cli.scene import info, synth
+from thgs.cli.suite import bare_ray_flag, suite
 from thgs.cli.view import view
 from thgs.errors import ThgsError
 
@@ -28,6 +29,7 @@ __all__ = [
     "pick",
     "preprocess",
     "query",
+    "suite",
     "synth",
     "view",
 ]
@@ -37,6 +39,7 @@ def entrypoint(argv: list[str] | None = None) -> None:
     """Run the CLI. Bad input ends with one `error:` line on stderr and exit status 2, an
     operating-system error (a full disk, a name too long) with one such line and status 1, Ctrl-C
     with `error: interrupted` and status 130; outputs are only ever whole or absent."""
+    args = bare_ray_flag(sys.argv[1:] if argv is None else argv)
     try:
         tyro.extras.subcommand_cli_from_dict(
             {
@@ -51,11 +54,12 @@ def entrypoint(argv: list[str] | None = None) -> None:
                 "eval-mean": evaluate_mean,
                 "info": info,
                 "bench": bench,
+                "suite": suite,
                 "synth": synth,
             },
             prog="thgs",
             description="thgs: open-vocabulary, hierarchical understanding of Gaussian scenes.",
-            args=argv,
+            args=args,
             config=(tyro.conf.DisallowNone,),
         )
     except ThgsError as exc:

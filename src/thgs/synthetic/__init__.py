@@ -21,7 +21,11 @@ from thgs.synthetic.dataset import (
     render_view,
     write_dataset,
 )
-from thgs.synthetic.layouts import write_opengaussian_scannet
+from thgs.synthetic.layouts import (
+    write_3dovs,
+    write_langsplat_lerf,
+    write_opengaussian_scannet,
+)
 from thgs.synthetic.oracle import FaultRates, LevelMasks, OracleConfig, oracle_guidance
 from thgs.synthetic.scene import PRESETS, SceneConfig, SyntheticScene, generate_scene, preset
 
@@ -41,6 +45,8 @@ __all__ = [
     "oracle_guidance",
     "preset",
     "render_view",
+    "write_3dovs",
     "write_dataset",
+    "write_langsplat_lerf",
     "write_opengaussian_scannet",
 ]

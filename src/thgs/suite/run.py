@@ -1,0 +1,745 @@
+"""Run a suite: for every scene, whatever of preprocess → build → eval is missing or stale.
+
+Outputs of scene ``<benchmark>/<scene>`` go to ``OUT/<benchmark>/<scene>/``:
+
+- ``language_features/`` — only for a scene without its own (the user's dataset is never
+  written into): SAM masks and CLIP features (:func:`thgs.guidance.preprocess.preprocess_images`);
+- ``field.thgs`` — the semantic field (:func:`thgs.pipeline.build_field`);
+- ``eval.json``, ``eval.md`` — the scene's evaluation (:func:`thgs.eval.evaluate_dataset`);
+- ``stages.json`` — one stamp per finished stage: a digest of the stage's inputs (settings, and
+  the size and modification time of every input file) and its recorded times;
+- ``error.log`` — the traceback of the last failure, if the scene failed.
+
+A stage is **current** when its outputs exist, its stamp's digest equals its inputs' digest now,
+and no stage before it ran in this run; a current stage is skipped. So a changed field config
+reruns build and eval, a changed selection mode only eval, and a suite interrupted anywhere
+(every output is written atomically, the stamp after it) resumes where it stopped.
+
+A scene that fails (bad input, any exception) is reported with a one-line message and its
+traceback in ``error.log``; the other scenes go on. In-process (the default) the scenes run one
+after the other; with Ray each scene is a task with the CPUs and GPU its device needs, and the
+suite's preprocessing a Ray Data pipeline over all its images. Both give the same report, timings
+aside (:meth:`thgs.suite.SuiteReport.comparable`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import logging
+import os
+import time
+import traceback
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+from thgs._atomic import atomic_output
+from thgs._json import load_json
+from thgs.errors import InputError, ThgsError
+from thgs.export import write_json
+from thgs.guidance.preprocess.run import PreprocessConfig
+from thgs.guidance.preprocess.sam import DEFAULT_SAM
+from thgs.pipeline import PRESETS, FieldConfig
+from thgs.suite.discover import SuiteScene
+from thgs.text import LANGSPLAT_SPACE
+
+__all__ = [
+    "STAGES",
+    "SceneResult",
+    "StagePlan",
+    "SuiteConfig",
+    "plan_scene",
+    "run_scene",
+    "run_suite",
+    "scene_folder",
+]
+
+logger = logging.getLogger(__name__)
+
+STAGES = ("preprocess", "build", "eval")
+"""A scene's stages, in the order they run."""
+
+STAMPS = "stages.json"
+FIELD = "field.thgs"
+EVAL = "eval.json"
+ERROR_LOG = "error.log"
+GUIDANCE = "language_features"
+
+_CAMERA_FILES = (
+    "sparse",
+    "transforms.json",
+    "transforms_train.json",
+    "transforms_test.json",
+    "cameras.json",
+)
+_MODEL_FILES = ("point_cloud", "ckpts", "cameras.json", "cfg_args", "cfg.yml", "cfg.json")
+
+Progress = Callable[[str, str], None]
+"""``progress(scene key, state)``: a scene's state as the suite advances (``"preprocess"``,
+``"build"``, ``"eval"`` when a stage starts; ``"done"``, ``"current"`` or ``"failed: …"``)."""
+
+
+@dataclass(frozen=True)
+class SuiteConfig:
+    """How every scene of a suite is preprocessed, built and evaluated.
+
+    Attributes:
+        preset: the field-building preset of every scene (:data:`thgs.pipeline.PRESETS`);
+            None: each benchmark's own, as in the paper (``3dovs`` for 3D-OVS scenes, ``lerf``
+            for the others).
+        config: a whole field config for every scene instead of a preset (``--config``).
+        settings: single settings changed on top, ``"dotted.key=VALUE"``
+            (:meth:`thgs.pipeline.FieldConfig.with_settings`).
+        selection: the query selection scored as the headline: ``"auto"`` (thgs's) or
+            ``"paper"`` (the paper's top-3); LERF-OVS reports the paper's rule beside it either
+            way (``lerf-paper``).
+        device: where to build and evaluate: ``auto``, ``cpu``, ``cuda`` or ``mps``.
+        sam: SAM for scenes without language features (a local folder or a Hugging Face id).
+        clip: CLIP for them, likewise.
+        preprocess: the preprocessing settings (:class:`thgs.guidance.preprocess.PreprocessConfig`).
+        scannet_level: the field level whose features classify ScanNet points.
+    """
+
+    preset: str | None = None
+    config: FieldConfig | None = None
+    settings: tuple[str, ...] = ()
+    selection: Literal["auto", "paper"] = "auto"
+    device: str = "cpu"
+    sam: str = DEFAULT_SAM
+    clip: str = LANGSPLAT_SPACE
+    preprocess: PreprocessConfig = field(default_factory=PreprocessConfig)
+    scannet_level: int = 3
+
+    def check(self) -> SuiteConfig:
+        """Refuse an unknown preset or selection, a preset together with a config, or a bad
+        ``--set``; returns ``self``.
+
+        Raises:
+            InputError: naming the option.
+        """
+        if self.preset is not None and self.preset not in PRESETS:
+            raise InputError(
+                "--preset", f"unknown {self.preset!r}; choose from {', '.join(PRESETS)}"
+            )
+        if self.preset is not None and self.config is not None:
+            raise InputError("--preset", "pass either --preset or --config, not both")
+        if self.selection not in ("auto", "paper"):
+            raise InputError("--selection", f"must be auto or paper, got {self.selection!r}")
+        if self.device not in ("auto", "cpu", "cuda", "mps"):
+            raise InputError("--device", f"must be auto, cpu, cuda or mps, got {self.device!r}")
+        for benchmark in ("lerf_ovs", "3dovs"):
+            self.field_config(benchmark)
+        return self
+
+    def field_config(self, benchmark: str) -> FieldConfig:
+        """The field config of a scene of ``benchmark``."""
+        if self.config is not None:
+            base = self.config
+        else:
+            base = PRESETS[self.preset or ("3dovs" if benchmark == "3dovs" else "lerf")]()
+        return base.with_settings(self.settings)
+
+    def to_json(self) -> dict[str, Any]:
+        """The settings as JSON (the report's "settings")."""
+        return {
+            "preset": self.preset,
+            "config": None if self.config is None else self.config.to_json(),
+            "settings": list(self.settings),
+            "selection": self.selection,
+            "device": self.device,
+            "sam": self.sam,
+            "clip": self.clip,
+            "preprocess": json.loads(json.dumps(asdict(self.preprocess))),
+            "scannet_level": self.scannet_level,
+        }
+
+
+@dataclass(frozen=True)
+class StagePlan:
+    """What a stage of a scene will do and why.
+
+    Attributes:
+        stage: one of :data:`STAGES`.
+        action: ``"run"``, ``"current"`` (skipped: outputs current) or ``"not needed"`` (the
+            scene's own language features; no preprocessing).
+        reason: why, in words.
+    """
+
+    stage: str
+    action: Literal["run", "current", "not needed"]
+    reason: str
+
+
+@dataclass(frozen=True)
+class SceneResult:
+    """What became of one scene.
+
+    Attributes:
+        benchmark, name: the scene.
+        stages: stage → ``"ran"``, ``"current"``, ``"not needed"``, ``"failed"`` or
+            ``"not run"``.
+        metrics: result name (``lerf``, ``lerf-paper``, ``3dovs``, ``scannet-19`` …) → metric →
+            value in [0, 1] (None where a protocol gives none), from ``eval.json``.
+        regions: the field's region counts at levels 0–3.
+        build_seconds: the field's build time per stage (``lift``, ``knn`` …), as recorded
+            when it was built.
+        seconds: wall time per stage (preprocess, build, eval), as recorded when it ran.
+        error: the one-line reason a failed scene failed; None when it succeeded.
+    """
+
+    benchmark: str
+    name: str
+    stages: dict[str, str]
+    metrics: dict[str, dict[str, float | None]] = field(default_factory=dict)
+    regions: tuple[int, ...] = ()
+    build_seconds: dict[str, float] = field(default_factory=dict)
+    seconds: dict[str, float] = field(default_factory=dict)
+    error: str | None = None
+
+    @property
+    def key(self) -> str:
+        return f"{self.benchmark}/{self.name}"
+
+    @property
+    def ok(self) -> bool:
+        return self.error is None
+
+
+def scene_folder(out: str | os.PathLike[str], scene: SuiteScene) -> Path:
+    """``OUT/<benchmark>/<scene>``: where a scene's outputs go."""
+    return Path(out) / scene.benchmark / scene.name
+
+
+# --- digests of stage inputs ----------------------------------------------------------------------
+
+
+def _files_state(path: Path, names: Sequence[str] | None = None) -> list[list[Any]]:
+    """``[relative path, size, mtime_ns]`` of every file under ``path`` (or of its entries
+    ``names``), sorted; following links."""
+    state: list[list[Any]] = []
+    roots = [path] if names is None else [path / name for name in names]
+    for top in roots:
+        if top.is_file():
+            info = top.stat()
+            state.append([os.path.relpath(top, path), info.st_size, info.st_mtime_ns])
+            continue
+        for folder, _, files in os.walk(top, followlinks=True):
+            for name in files:
+                file = Path(folder) / name
+                with contextlib.suppress(FileNotFoundError):
+                    info = file.stat()
+                    state.append([os.path.relpath(file, path), info.st_size, info.st_mtime_ns])
+    return sorted(state)
+
+
+def _digest(value: Any) -> str:
+    return hashlib.sha256(json.dumps(value, sort_keys=True).encode()).hexdigest()
+
+
+def _guidance(scene: SuiteScene, folder: Path) -> Path:
+    return scene.guidance if scene.guidance is not None else folder / GUIDANCE
+
+
+def _inputs(scene: SuiteScene, folder: Path, config: SuiteConfig, stage: str) -> dict[str, Any]:
+    """The inputs a stage's digest is made of."""
+    if stage == "preprocess":
+        assert scene.images is not None
+        return {
+            "sam": config.sam,
+            "clip": config.clip,
+            "preprocess": config.to_json()["preprocess"],
+            "images": _files_state(scene.images),
+        }
+    assert scene.model is not None
+    build = {
+        "field": config.field_config(scene.benchmark).to_json(),
+        "model": _files_state(scene.model, _MODEL_FILES),
+        "cameras": _files_state(scene.data, _CAMERA_FILES),
+        "guidance": _files_state(_guidance(scene, folder)),
+    }
+    if stage == "build":
+        return build
+    return {
+        "build": _digest(build),
+        "field": _files_state(folder, (FIELD,)),
+        "selection": config.selection,
+        "protocols": list(scene.protocols),
+        "scannet_level": config.scannet_level,
+        "ground_truth": {
+            source: _files_state(path) for source, path in sorted(scene.ground_truth.paths.items())
+        },
+    }
+
+
+def _outputs_exist(folder: Path, scene: SuiteScene, stage: str) -> bool:
+    if stage == "preprocess":
+        return (folder / GUIDANCE).is_dir()
+    if stage == "build":
+        return (folder / FIELD).is_file()
+    return (folder / EVAL).is_file() and (folder / EVAL).with_suffix(".md").is_file()
+
+
+def _read_stamps(folder: Path) -> dict[str, Any]:
+    path = folder / STAMPS
+    if not path.is_file():
+        return {}
+    try:
+        stamps = load_json(path)
+    except InputError as error:
+        logger.warning("%s; its stages run again", error)
+        return {}
+    return stamps if isinstance(stamps, dict) else {}
+
+
+def _write_stamp(folder: Path, stage: str, stamp: dict[str, Any]) -> None:
+    stamps = _read_stamps(folder)
+    stamps[stage] = stamp
+    for later in STAGES[STAGES.index(stage) + 1 :]:
+        stamps.pop(later, None)
+    write_json(folder / STAMPS, stamps)
+
+
+def _stage_plan(
+    scene: SuiteScene, folder: Path, config: SuiteConfig, stage: str, stamps: dict, earlier: bool
+) -> StagePlan:
+    """The plan of one stage, given whether an earlier stage runs."""
+    if stage == "preprocess" and scene.guidance is not None:
+        return StagePlan(stage, "not needed", "the scene has language_features")
+    if earlier:
+        return StagePlan(stage, "run", "an earlier stage runs")
+    if not _outputs_exist(folder, scene, stage):
+        return StagePlan(stage, "run", "no output yet")
+    recorded = stamps.get(stage, {}).get("digest") if isinstance(stamps.get(stage), dict) else None
+    if recorded is None:
+        return StagePlan(stage, "run", "output without a stamp (interrupted?)")
+    if recorded != _digest(_inputs(scene, folder, config, stage)):
+        return StagePlan(stage, "run", "its inputs or settings changed")
+    return StagePlan(stage, "current", "output current")
+
+
+def plan_scene(
+    scene: SuiteScene, out: str | os.PathLike[str], config: SuiteConfig
+) -> tuple[StagePlan, ...]:
+    """What :func:`run_scene` would do for ``scene`` now, stage by stage (``thgs suite
+    --dry-run``). A scene with problems plans nothing (its problems are the reason).
+
+    Raises:
+        InputError: ``scene`` has problems (the message lists them).
+    """
+    if scene.problems:
+        raise InputError(scene.data, "; ".join(scene.problems))
+    folder = scene_folder(out, scene)
+    stamps = _read_stamps(folder)
+    plans: list[StagePlan] = []
+    for stage in STAGES:
+        earlier = any(plan.action == "run" for plan in plans)
+        plans.append(_stage_plan(scene, folder, config, stage, stamps, earlier))
+    return tuple(plans)
+
+
+# --- the stages -----------------------------------------------------------------------------------
+
+
+def _preprocess(scene: SuiteScene, folder: Path, config: SuiteConfig, models) -> dict[str, Any]:
+    import torch
+
+    from thgs.guidance.preprocess import image_jobs, load_preprocess_models, preprocess_images
+    from thgs.scene import load_cameras
+
+    assert scene.images is not None
+    cameras = load_cameras(scene.data)[0]
+    jobs = image_jobs(scene.images, cameras=cameras)
+    if models is None:
+        models = load_preprocess_models(
+            config.sam, config.clip, device=_torch_device(config.device), dtype=torch.float32
+        )
+    segmenter, encoder = models
+    summary = preprocess_images(jobs, folder / GUIDANCE, segmenter, encoder, config.preprocess)
+    return {"images": len(jobs), "masks": list(summary.masks)}
+
+
+def _torch_device(device: str) -> str:
+    from thgs.device import resolve_device
+
+    return str(resolve_device(device))
+
+
+def _build(scene: SuiteScene, folder: Path, config: SuiteConfig) -> dict[str, Any]:
+    from thgs.device import resolve_device
+    from thgs.field import save_field
+    from thgs.field_scene import record_scene, record_text_model
+    from thgs.guidance import check_masks, guidance_space, load_guidance, read_embedding_model
+    from thgs.pipeline import build_field
+    from thgs.scene import load_scene
+
+    assert scene.model is not None
+    source = None if scene.model == scene.data else scene.data
+    loaded = load_scene(scene.model, source=source)
+    if loaded.cameras is None:
+        raise InputError(scene.model, "no cameras (neither the data folder's nor cameras.json)")
+    guidance = _guidance(scene, folder)
+    views = load_guidance(guidance, loaded.cameras)
+    check_masks(views, guidance)
+    space = guidance_space(guidance, views)
+    model = read_embedding_model(guidance)
+    if model is not None and not model.is_dir():
+        logger.warning("%s: its text model folder %s does not exist", guidance, model)
+        model = None
+    built = build_field(
+        loaded.to(resolve_device(config.device)),
+        views,
+        config.field_config(scene.benchmark),
+        space=space,
+    )
+    path = folder / FIELD
+    built = record_scene(built, scene.model, source=source, field_path=path)
+    built = record_text_model(built, model)
+    save_field(path, built)
+    return {"timings": dict(built.timings), "regions": list(built.region_counts)}
+
+
+def _evaluate(scene: SuiteScene, folder: Path, config: SuiteConfig) -> dict[str, Any]:
+    from thgs.eval.dataset import check_ground_truth_scene, evaluate_dataset
+    from thgs.field_scene import field_text_encoder, open_field_scene
+    from thgs.pipeline import lifted_raster
+    from thgs.query import FieldQuery
+
+    path = folder / FIELD
+    semantic, loaded = open_field_scene(path, device=config.device)
+    check_ground_truth_scene(scene.data, loaded.cameras)
+    encoder = field_text_encoder(semantic, path)
+    engine = FieldQuery(semantic, encoder, source=str(path))
+    if config.selection == "paper":
+        engine = engine.using(mode="paper", levels=None)
+    report = evaluate_dataset(
+        scene.ground_truth,
+        engine,
+        loaded.gaussians,
+        loaded.cameras,
+        protocols=scene.protocols,
+        scannet_level=config.scannet_level,
+        raster=lifted_raster(semantic, str(path)),
+    )
+    document = report.to_json()
+    document["info"] = {**document["info"], "dataset": str(scene.data), "field": str(path)}
+    write_json(folder / EVAL, document)
+    with atomic_output((folder / EVAL).with_suffix(".md"), "w") as handle:
+        handle.write(report.table() + "\n")
+    return {}
+
+
+def _metrics(folder: Path) -> dict[str, dict[str, float | None]]:
+    document = load_json(folder / EVAL)
+    if not isinstance(document, dict) or not isinstance(document.get("results"), list):
+        raise InputError(folder / EVAL, "is not a thgs eval report (no 'results' list)")
+    return {result["protocol"]: dict(result["metrics"]) for result in document["results"]}
+
+
+def _one_line(error: BaseException) -> str:
+    if isinstance(error, ThgsError):
+        text = str(error)
+    elif isinstance(error, OSError) and error.filename:
+        text = f"{error.filename}: {error.strerror or error}"
+    else:
+        text = f"{type(error).__name__}: {error}"
+    return " ".join(text.split())
+
+
+def _recorded(scene: SuiteScene, folder: Path, stages: dict[str, str], error: str | None):
+    stamps = _read_stamps(folder)
+    build = stamps.get("build", {})
+    return SceneResult(
+        scene.benchmark,
+        scene.name,
+        stages,
+        metrics=_metrics(folder) if error is None else {},
+        regions=tuple(build.get("regions", ())),
+        build_seconds=dict(build.get("timings", {})),
+        seconds={
+            stage: stamps[stage]["seconds"]
+            for stage in STAGES
+            if isinstance(stamps.get(stage), dict) and "seconds" in stamps[stage]
+        },
+        error=error,
+    )
+
+
+def run_scene(
+    scene: SuiteScene,
+    out: str | os.PathLike[str],
+    config: SuiteConfig,
+    *,
+    models: tuple[Any, Any] | None = None,
+    progress: Progress | None = None,
+) -> SceneResult:
+    """Run what is missing or stale of one scene's stages (module docstring) and return what
+    became of it. Never raises for a failing scene: the failure is in the result (and the
+    traceback in ``OUT/<benchmark>/<scene>/error.log``); only an interruption
+    (``KeyboardInterrupt``) propagates, leaving the scene resumable.
+
+    Args:
+        scene: from :func:`thgs.suite.find_suite`.
+        out: the suite's output folder.
+        config: the suite's settings.
+        models: SAM and CLIP already loaded
+            (:func:`thgs.guidance.preprocess.load_preprocess_models`), shared by the scenes of
+            an in-process run; None: loaded here when needed.
+        progress: called with the scene's key and the stage starting, then its end state.
+    """
+    folder = scene_folder(out, scene)
+    stages = dict.fromkeys(STAGES, "not run")
+    if scene.problems:
+        return SceneResult(scene.benchmark, scene.name, stages, error="; ".join(scene.problems))
+
+    def report(state: str) -> None:
+        if progress is not None:
+            progress(scene.key, state)
+
+    stage = STAGES[0]
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        for plan in plan_scene(scene, out, config):
+            stage = plan.stage
+            if plan.action != "run":
+                stages[stage] = plan.action
+                continue
+            report(stage)
+            started = time.perf_counter()
+            if stage == "preprocess":
+                extra = _preprocess(scene, folder, config, models)
+            elif stage == "build":
+                extra = _build(scene, folder, config)
+            else:
+                extra = _evaluate(scene, folder, config)
+            seconds = time.perf_counter() - started
+            digest = _digest(_inputs(scene, folder, config, stage))
+            _write_stamp(folder, stage, {"digest": digest, "seconds": seconds, **extra})
+            stages[stage] = "ran"
+        result = _recorded(scene, folder, stages, None)
+    except Exception as error:  # any failure of one scene is reported; the others go on
+        message = _one_line(error)
+        stages[stage] = "failed"
+        with atomic_output(folder / ERROR_LOG, "w") as handle:
+            handle.write(traceback.format_exc())
+        logger.error("%s failed: %s", scene.key, message)
+        report(f"failed: {message}")
+        return SceneResult(scene.benchmark, scene.name, stages, error=message)
+    with contextlib.suppress(FileNotFoundError):
+        (folder / ERROR_LOG).unlink()
+    report("done" if "ran" in stages.values() else "current")
+    return result
+
+
+# --- the suite ------------------------------------------------------------------------------------
+
+
+_ANSWER_SECONDS = 10.0
+"""How long a Ray cluster's address has to accept a connection."""
+
+
+def _check_answers(address: str) -> None:
+    """Refuse a ``host:port`` (or ``ray://host:port``) nobody listens on, at once rather than
+    after Ray's own minutes of retries; ``auto`` and other forms are left to Ray.
+
+    Raises:
+        ThgsError: the address does not accept a connection within :data:`_ANSWER_SECONDS`.
+    """
+    import socket
+
+    host, colon, port = address.removeprefix("ray://").rpartition(":")
+    if not colon or not port.isdigit() or not host:
+        return
+    try:
+        with socket.create_connection((host.strip("[]"), int(port)), timeout=_ANSWER_SECONDS):
+            pass
+    except OSError as error:
+        raise ThgsError(
+            f"Ray at {address}: does not answer ({error.strerror or error}); start the cluster "
+            "with ray start --head, or leave the address out for a local Ray"
+        ) from error
+
+
+@contextlib.contextmanager
+def _connect(address: str | None) -> Iterator[Any]:
+    """Ray, connected: to the cluster at ``address`` or, for None, a local Ray started here
+    (shut down afterwards). A Ray already initialised in this process is used as it is.
+
+    Raises:
+        ThgsError: Ray is not installed, or the cluster does not answer.
+    """
+    try:
+        import ray
+    except ImportError as error:
+        raise ThgsError(
+            "--ray runs scenes as Ray tasks and needs Ray: pip install 'thgs[cluster]'"
+        ) from error
+    if address is not None:
+        _check_answers(address)
+    if ray.is_initialized():
+        yield ray
+        return
+    try:
+        ray.init(address=address, include_dashboard=False, log_to_driver=False)
+    except (ConnectionError, RuntimeError, ValueError) as error:
+        raise ThgsError(f"Ray at {address}: does not answer ({error})") from error
+    try:
+        yield ray
+    finally:
+        ray.shutdown()
+
+
+def _run_in_process(scenes, out, config, progress) -> list[SceneResult]:
+    models = None
+    results = []
+    for scene in scenes:
+        wants = not scene.problems and scene.guidance is None
+        if wants and models is None and _plans_preprocessing(scene, out, config):
+            import torch
+
+            from thgs.guidance.preprocess import load_preprocess_models
+
+            models = load_preprocess_models(
+                config.sam, config.clip, device=_torch_device(config.device), dtype=torch.float32
+            )
+        results.append(run_scene(scene, out, config, models=models, progress=progress))
+    return results
+
+
+def _plans_preprocessing(scene: SuiteScene, out, config: SuiteConfig) -> bool:
+    try:
+        return plan_scene(scene, out, config)[0].action == "run"
+    except (InputError, OSError):
+        return False
+
+
+def _end_state(result: SceneResult) -> str:
+    if not result.ok:
+        return f"failed: {result.error}"
+    return "done" if "ran" in result.stages.values() else "current"
+
+
+def _resources(ray, device: str) -> dict[str, float]:
+    gpus = 1.0 if device == "cuda" else 0.0
+    if device == "auto" and ray.cluster_resources().get("GPU", 0) > 0:
+        gpus = 1.0
+    return {"num_cpus": 1, "num_gpus": gpus}
+
+
+def _preprocess_on_ray(scenes, out, config, ray, progress) -> None:
+    """Preprocess every scene that needs it in one Ray Data pipeline, then stamp them."""
+    waiting = [s for s in scenes if not s.problems and _plans_preprocessing(s, out, config)]
+    if not waiting:
+        return
+    from thgs.guidance.preprocess import image_jobs
+    from thgs.guidance.preprocess.distributed import PreprocessTarget, preprocess_with_ray
+    from thgs.scene import load_cameras
+
+    targets = []
+    for scene in waiting:
+        assert scene.images is not None
+        jobs = image_jobs(scene.images, cameras=load_cameras(scene.data)[0])
+        targets.append(PreprocessTarget(tuple(jobs), scene_folder(out, scene) / GUIDANCE))
+        if progress is not None:
+            progress(scene.key, "preprocess")
+    gpus = _resources(ray, config.device)["num_gpus"]
+    started = time.perf_counter()
+    summaries = preprocess_with_ray(
+        targets,
+        sam=config.sam,
+        clip=config.clip,
+        config=config.preprocess,
+        device="cuda" if gpus else "cpu",
+        gpus_per_actor=gpus,
+    )
+    seconds = (time.perf_counter() - started) / len(waiting)
+    for scene, target, summary in zip(waiting, targets, summaries):
+        folder = scene_folder(out, scene)
+        digest = _digest(_inputs(scene, folder, config, "preprocess"))
+        extra = {"images": len(target.jobs), "masks": list(summary.masks)}
+        _write_stamp(folder, "preprocess", {"digest": digest, "seconds": seconds, **extra})
+
+
+def _run_on_ray(scenes, out, config, ray, progress) -> list[SceneResult]:
+    _preprocess_on_ray(scenes, out, config, ray, progress)
+    task = ray.remote(run_scene).options(**_resources(ray, config.device), max_retries=0)
+    pending = {}
+    for index, scene in enumerate(scenes):
+        pending[task.remote(scene, Path(out).resolve(), config)] = index
+    results: list[SceneResult | None] = [None] * len(scenes)
+    try:
+        while pending:
+            ready, _ = ray.wait(list(pending), num_returns=1)
+            index = pending.pop(ready[0])
+            scene = scenes[index]
+            try:
+                result = ray.get(ready[0])
+            except ray.exceptions.RayError as error:  # the worker died (out of memory, killed)
+                message = _one_line(error).splitlines()[0][:500]
+                stages = {**dict.fromkeys(STAGES, "not run"), "build": "failed"}
+                result = SceneResult(scene.benchmark, scene.name, stages, error=message)
+            results[index] = result
+            if progress is not None:
+                progress(scene.key, _end_state(result))
+    except KeyboardInterrupt:
+        for ref in pending:
+            ray.cancel(ref, force=True)
+        raise
+    return [result for result in results if result is not None]
+
+
+def run_suite(
+    scenes: Sequence[SuiteScene],
+    out: str | os.PathLike[str],
+    config: SuiteConfig = SuiteConfig(),
+    *,
+    use_ray: bool = False,
+    ray_address: str | None = None,
+    progress: Progress | None = None,
+):
+    """Run every scene's missing stages and gather the suite's report.
+
+    Args:
+        scenes: from :func:`thgs.suite.find_suite`; results keep their order.
+        out: the output folder (module docstring).
+        config: the suite's settings.
+        use_ray: run scenes as Ray tasks (and preprocessing as a Ray Data pipeline); Ray must
+            be installed (``thgs[cluster]``).
+        ray_address: the Ray cluster to connect to (``ray start --head`` prints it); None with
+            ``use_ray`` starts a local Ray for this run. A Ray already initialised in this
+            process is used as it is.
+        progress: ``progress(scene key, state)`` as scenes advance.
+
+    Returns:
+        a :class:`thgs.suite.SuiteReport` (not yet written: :func:`thgs.suite.write_suite_report`).
+
+    Raises:
+        ThgsError: Ray is wanted but missing, or its cluster does not answer.
+        KeyboardInterrupt: passed on; every output is whole or absent, the suite resumable.
+    """
+    from thgs.suite.report import SuiteReport
+
+    config.check()
+    out = Path(out)
+    started = time.perf_counter()
+    if use_ray:
+        with _connect(ray_address) as ray:
+            out.mkdir(parents=True, exist_ok=True)
+            results = _run_on_ray(list(scenes), out, config, ray, progress)
+        executor = "ray"
+    else:
+        out.mkdir(parents=True, exist_ok=True)
+        results = _run_in_process(list(scenes), out, config, progress)
+        executor = "in-process"
+    return SuiteReport(
+        scenes=tuple(results),
+        settings=config.to_json(),
+        field_configs={
+            benchmark: config.field_config(benchmark).to_json()
+            for benchmark in sorted({scene.benchmark for scene in scenes})
+        },
+        executor=executor,
+        seconds=time.perf_counter() - started,
+    )
