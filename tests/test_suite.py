@@ -162,7 +162,7 @@ def test_each_number_is_thgs_eval_by_hand(in_process, suite_root, tmp_path, caps
     )
     markdown = (out / "report.md").read_text()
     assert f"| teatime | {100 * rows['teatime'][0]:.1f} |" in markdown
-    assert "## Field-building time (s)" in markdown
+    assert "## Times (s): field building by stage, preprocessing, evaluation" in markdown
 
 
 def test_resume_skips_what_is_current(in_process, suite_root, capsys):

@@ -176,7 +176,7 @@ def suite(
     finally:
         progress.stop()
     report, paths = write_suite_report(out, report)
-    stdout.print(report.markdown(), markup=False, highlight=False)
+    stdout.print(report.markdown(), markup=False, highlight=False, soft_wrap=True)
     stdout.print("wrote " + ", ".join(str(path) for path in paths))
     if report.failed:
         error(

@@ -49,7 +49,7 @@ HEADLINES: dict[str, tuple[tuple[str, str, str], ...]] = {
     "3dovs": (("3dovs", "miou", "mIoU ({selection})"), ("3dovs", "accuracy", "acc")),
     "scannet": tuple(
         (f"scannet-{n}", metric, f"{label} {n}")
-        for n in (19, 15, 10)
+        for n in (19, 15, 10, "all")
         for metric, label in (("miou", "mIoU"), ("macc", "mAcc"))
     ),
     "synthetic": (
@@ -62,7 +62,9 @@ HEADLINES: dict[str, tuple[tuple[str, str, str], ...]] = {
     ),
 }
 """Each benchmark's table columns: ``(result, metric, label)``; ``{selection}`` in a label is the
-chosen selection mode."""
+chosen selection mode. A report shows the columns that some scene has a value for (ScanNet's
+``scannet-all`` is scored instead of the 19/15/10-class subsets when the labels are not NYU40's,
+as in synthetic scenes)."""
 
 _TITLES = {
     "lerf_ovs": "LERF-OVS",
@@ -122,12 +124,21 @@ class SuiteReport:
         return tuple(name for name in BENCHMARKS if name in present)
 
     def columns(self, benchmark: str) -> list[tuple[str, str, str]]:
-        """``(result, metric, label)`` of ``benchmark``'s table, the labels filled in."""
+        """``(result, metric, label)`` of ``benchmark``'s table, the labels filled in: the
+        :data:`HEADLINES` that some scene of the benchmark has a value for (all of them when
+        none has any, e.g. every scene failed)."""
         selection = self.settings.get("selection", "auto")
-        return [
+        columns = [
             (result, metric, label.format(selection=selection))
             for result, metric, label in HEADLINES[benchmark]
         ]
+        scenes = [scene for scene in self.scenes if scene.benchmark == benchmark]
+        present = [
+            column
+            for column in columns
+            if any(scene.metrics.get(column[0], {}).get(column[1]) is not None for scene in scenes)
+        ]
+        return present or columns
 
     def table(self, benchmark: str) -> dict[str, Any]:
         """``benchmark``'s table: ``columns`` (labels), ``rows`` (one per scene: name and values,
@@ -215,7 +226,7 @@ class SuiteReport:
                 )
             lines.append("| **mean** | " + " | ".join(map(_percent, table["mean"])) + " |")
             lines.append("")
-        lines += ["## Field-building time (s)", ""]
+        lines += ["## Times (s): field building by stage, preprocessing, evaluation", ""]
         lines.append("| scene | total | " + " | ".join(_BUILD_GROUPS) + " | preprocess | eval |")
         lines.append("|---" * (len(_BUILD_GROUPS) + 4) + "|")
         for scene in self.scenes:

@@ -191,7 +191,6 @@ def write_3dovs(
     return data
 
 
-
 _DATASET_PARTS = (
     "cameras.json",
     "images",
