@@ -255,8 +255,13 @@ def preprocess_image(
     return ViewGuidance(stem, np.stack(segments), np.concatenate(features).astype(np.float32))
 
 
+# The steps of preprocess_images, shared with preprocess_with_ray (distributed.py), which runs
+# them in the driver (the folder's record, skipping, the summary) and in Ray workers (the views);
+# not in __all__.
+
+
 @dataclass(frozen=True)
-class _FolderRecord:
+class FolderRecord:
     """What a ``language_features`` folder records of the models and settings its views were made
     with: the manifest (``preprocess.json``) and the features' space, dimension and local model
     folder (``embedding.json``)."""
@@ -269,7 +274,7 @@ class _FolderRecord:
     @classmethod
     def of(
         cls, segmenter: PointSegmenter, encoder: CLIPImageEncoder, config: PreprocessConfig
-    ) -> _FolderRecord:
+    ) -> FolderRecord:
         manifest = {
             "format": "LangSplat language_features",
             "sam": segmenter.name,
@@ -302,7 +307,7 @@ def _check_or_write_manifest(output: Path, manifest: dict, overwrite: bool) -> N
         handle.write("\n")
 
 
-def _prepare_folder(output: Path, record: _FolderRecord, overwrite: bool) -> None:
+def prepare_folder(output: Path, record: FolderRecord, overwrite: bool) -> None:
     """Create ``output`` if missing, refuse it if it was made with other models or settings (or
     features of another space) unless ``overwrite``, and record ``record`` in it."""
     output.mkdir(parents=True, exist_ok=True)
@@ -317,12 +322,12 @@ def _prepare_folder(output: Path, record: _FolderRecord, overwrite: bool) -> Non
     write_embedding_space(output, record.space, record.dim, model=record.model)
 
 
-def _is_finished(output: Path, stem: str) -> bool:
+def is_finished(output: Path, stem: str) -> bool:
     return (output / f"{stem}_s.npy").is_file()
 
 
 @dataclass(frozen=True)
-class _ViewResult:
+class ViewResult:
     """One image preprocessed: its stem, seconds taken and masks per level (``LEVELS`` order)."""
 
     stem: str
@@ -330,13 +335,13 @@ class _ViewResult:
     masks: tuple[int, int, int, int]
 
 
-def _preprocess_view(
+def preprocess_view(
     job: ImageJob,
     output: Path,
     segmenter: PointSegmenter,
     encoder: CLIPImageEncoder,
     config: PreprocessConfig,
-) -> _ViewResult:
+) -> ViewResult:
     """Read, preprocess and write one view (its two files atomically, ``_s.npy`` last)."""
     start = time.perf_counter()
     image = read_image(job.path, job.size, max_height=config.max_height)
@@ -345,11 +350,11 @@ def _preprocess_view(
     found = tuple(len(guidance.level_ids(level)) for level in range(len(LEVELS)))
     seconds = time.perf_counter() - start
     logger.info("%s: %d masks in %.2f s", job.stem, len(guidance.features), seconds)
-    return _ViewResult(job.stem, seconds, found)
+    return ViewResult(job.stem, seconds, found)
 
 
-def _summarize(
-    output: Path, results: Sequence[_ViewResult], skipped: list[str], config: PreprocessConfig
+def summarize(
+    output: Path, results: Sequence[ViewResult], skipped: list[str], config: PreprocessConfig
 ) -> PreprocessSummary:
     """The summary of one folder's run, warning when SAM kept no mask in most images done."""
     counts = np.zeros(len(LEVELS), dtype=np.int64)
@@ -401,16 +406,16 @@ def preprocess_images(
             its embedding space differs, or an image is unreadable.
     """
     output = Path(output)
-    _prepare_folder(output, _FolderRecord.of(segmenter, encoder, config), overwrite)
-    results: list[_ViewResult] = []
+    prepare_folder(output, FolderRecord.of(segmenter, encoder, config), overwrite)
+    results: list[ViewResult] = []
     skipped: list[str] = []
     for job in jobs:
-        if not overwrite and _is_finished(output, job.stem):
+        if not overwrite and is_finished(output, job.stem):
             skipped.append(job.stem)
             if on_image is not None:
                 on_image(job.stem, None)
             continue
-        results.append(_preprocess_view(job, output, segmenter, encoder, config))
+        results.append(preprocess_view(job, output, segmenter, encoder, config))
         if on_image is not None:
             on_image(job.stem, results[-1].seconds)
-    return _summarize(output, results, skipped, config)
+    return summarize(output, results, skipped, config)
