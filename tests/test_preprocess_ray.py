@@ -196,6 +196,8 @@ def test_bad_arguments_are_named(scenes, models, local_ray):
         preprocess_with_ray(targets, sam=models["sam"], clip=models["clip"], dtype="int8")
     with pytest.raises(InputError, match=r"gpus_per_actor: is 0; device 'cuda' needs a GPU"):
         preprocess_with_ray(targets, sam=models["sam"], clip=models["clip"], device="cuda")
+    with pytest.raises(InputError, match=r"actors: must be at least 1, not 0"):
+        preprocess_with_ray(targets, sam=models["sam"], clip=models["clip"], actors=0)
 
 
 def test_a_missing_model_is_named_from_the_worker(tmp_path, scenes, models, local_ray):

@@ -29,7 +29,8 @@ from __future__ import annotations
 import logging
 import os
 import pickle
-from collections.abc import Callable, Sequence
+import time
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -184,8 +185,6 @@ def _check_targets(targets: Sequence[PreprocessTarget]) -> list[PreprocessTarget
 
 def _actor_count(ray, actors: int | None, gpus_per_actor: float, images: int) -> int:
     if actors is not None:
-        if actors < 1:
-            raise InputError("actors", f"must be at least 1, not {actors}")
         return actors
     resources = ray.cluster_resources()
     if gpus_per_actor > 0:
@@ -198,6 +197,35 @@ def _actor_count(ray, actors: int | None, gpus_per_actor: float, images: int) ->
     else:
         capacity = int(resources.get("CPU", 1.0))
     return max(1, min(capacity, images))
+
+
+def _run_pipeline(
+    ray, rows: list[dict], models: _Models, config: PreprocessConfig, actors: int, gpus: float
+) -> Iterator[tuple[tuple[int, str], ViewResult | ThgsError]]:
+    """Run the rows through a pool of ``actors`` actors; yields each image's (target, stem) and
+    its result or error, as the images finish."""
+    dataset = ray.data.from_items(rows, override_num_blocks=len(rows))
+    dataset.context.enable_progress_bars = False
+    dataset.context.print_on_execution_start = False
+    views = dataset.map_batches(
+        _ViewWorker,
+        fn_constructor_kwargs={"models": models, "config": config},
+        compute=ray.data.ActorPoolStrategy(
+            size=actors, max_tasks_in_flight_per_actor=MAX_TASKS_PER_ACTOR
+        ),
+        num_gpus=gpus,
+        batch_size=1,
+        batch_format="numpy",
+    )
+    for batch in views.iter_batches(batch_size=None, batch_format="numpy"):
+        for target, stem, seconds, masks, error in zip(
+            batch["target"], batch["stem"], batch["seconds"], batch["masks"], batch["error"]
+        ):
+            key = (int(target), str(stem))
+            if error:
+                yield key, pickle.loads(error)
+            else:
+                yield key, ViewResult(key[1], float(seconds), tuple(int(m) for m in masks))
 
 
 def preprocess_with_ray(
@@ -258,9 +286,14 @@ def preprocess_with_ray(
         raise InputError(
             "gpus_per_actor", f"is {gpus_per_actor:g}; device {device!r} needs a GPU per actor"
         )
+    if actors is not None and actors < 1:
+        raise InputError("actors", f"must be at least 1, not {actors}")
+    if not targets:
+        return []
     targets = _check_targets(targets)
     models = _Models(_absolute_if_folder(sam), _absolute_if_folder(clip), space, device, dtype)
 
+    start = time.perf_counter()
     record = ray.get(
         ray.remote(_folder_record)
         .options(num_gpus=gpus_per_actor, max_retries=0)
@@ -268,6 +301,7 @@ def preprocess_with_ray(
     )
     if isinstance(record, bytes):
         raise pickle.loads(record)
+    logger.info("models loaded on a Ray worker in %.1f s", time.perf_counter() - start)
     rows, skipped = [], []
     for index, target in enumerate(targets):
         prepare_folder(target.output, record, overwrite)
@@ -302,30 +336,13 @@ def preprocess_with_ray(
             gpus_per_actor,
             device,
         )
-        dataset = ray.data.from_items(rows, override_num_blocks=len(rows))
-        dataset.context.enable_progress_bars = False
-        dataset.context.print_on_execution_start = False
-        views = dataset.map_batches(
-            _ViewWorker,
-            fn_constructor_kwargs={"models": models, "config": config},
-            compute=ray.data.ActorPoolStrategy(
-                size=count, max_tasks_in_flight_per_actor=MAX_TASKS_PER_ACTOR
-            ),
-            num_gpus=gpus_per_actor,
-            batch_size=1,
-            batch_format="numpy",
-        )
-        for batch in views.iter_batches(batch_size=None, batch_format="numpy"):
-            for target, stem, seconds, masks, error in zip(
-                batch["target"], batch["stem"], batch["seconds"], batch["masks"], batch["error"]
-            ):
-                key = (int(target), str(stem))
-                if error:
-                    failures[key] = pickle.loads(error)
-                    continue
-                results[key] = ViewResult(key[1], float(seconds), tuple(int(m) for m in masks))
-                if on_image is not None:
-                    on_image(key[1], float(seconds))
+        for key, result in _run_pipeline(ray, rows, models, config, count, gpus_per_actor):
+            if isinstance(result, ThgsError):
+                failures[key] = result
+                continue
+            results[key] = result
+            if on_image is not None:
+                on_image(result.stem, result.seconds)
 
     if failures:
         ordered = [
