@@ -13,11 +13,13 @@ local Ray started once. The files must come out identical (checked). Measured:
 - ``ray_start_s``: starting the local Ray (:func:`thgs.cluster.connect_ray`);
 - ``model_load_s``: loading SAM and CLIP once, in process;
 - ``seconds_per_image``: in process (mean), and as the actors measured it, per actor count;
+- ``worker_start_and_model_load_s``: a fresh Ray worker starting, importing thgs and loading the
+  models (a distributed run pays it twice in a row: the driver's check of the folders, then the
+  actors, in parallel);
 - ``per_task_overhead_s``: what Ray Data adds per image, from a pipeline of the same shape whose
   actors do nothing (its wall time on 64 images minus on 1, over 63);
 - ``fixed_overhead_s``: per actor count, the wall time less images × per-image seconds / actors:
-  the model loads (one in the driver's check, one per actor, in parallel), the workers' start and
-  imports, the dataset's start and end.
+  the two worker starts and model loads above, and the dataset's start and end.
 
 The scaling model written from these: T(N) ≈ startup + model_load + images × t_image / N +
 overhead. Models are randomly initialised with the architecture named (see bench_preprocess.py),
@@ -72,6 +74,17 @@ def per_task_overhead(ray, actors: int) -> float:
 
     run(1)  # warm-up: the workers' first start
     return (run(64) - run(1)) / 63
+
+
+def _load_models(sam: str, clip: str, device: str, dtype: str) -> None:
+    load_preprocess_models(sam, clip, device=device, dtype=getattr(torch, dtype))
+
+
+def worker_model_load(ray, sam: str, clip: str, device: str, dtype: str, gpus: float) -> float:
+    """Seconds for a fresh Ray worker to start, import thgs and load the models."""
+    start = time.perf_counter()
+    ray.get(ray.remote(_load_models).options(num_gpus=gpus).remote(sam, clip, device, dtype))
+    return time.perf_counter() - start
 
 
 def same_files(folder: Path, reference: Path) -> bool:
@@ -152,6 +165,10 @@ def main() -> None:
                 "model_load_s": round(model_load, 2),
                 "seconds_per_image": round(t_image, 3),
                 "in_process_total_s": round(model_load + in_process, 2),
+                "worker_start_and_model_load_s": round(
+                    worker_model_load(ray, sam, clip, args.device, args.dtype, args.gpus_per_actor),
+                    2,
+                ),
                 "per_task_overhead_s": round(per_task_overhead(ray, max(args.actors)), 4),
                 "ray": [],
             }
