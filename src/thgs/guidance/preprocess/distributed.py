@@ -38,6 +38,7 @@ import numpy as np
 import torch
 
 from thgs.errors import InputError, ThgsError
+from thgs.guidance.preprocess.clip_features import CLIPImageEncoder
 from thgs.guidance.preprocess.models import load_preprocess_models, local_model_folder
 from thgs.guidance.preprocess.run import (
     FolderRecord,
@@ -50,6 +51,7 @@ from thgs.guidance.preprocess.run import (
     preprocess_view,
     summarize,
 )
+from thgs.guidance.preprocess.sam import PointSegmenter
 
 __all__ = ["PreprocessTarget", "preprocess_with_ray"]
 
@@ -87,7 +89,7 @@ class _Models:
     device: str
     dtype: str
 
-    def load(self):
+    def load(self) -> tuple[PointSegmenter, CLIPImageEncoder]:
         return load_preprocess_models(
             self.sam,
             self.clip,
