@@ -4,12 +4,14 @@ process; Ray not initialised."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 from PIL import Image
 
 from thgs.errors import InputError, ThgsError
@@ -37,6 +39,19 @@ PERMISSIVE = PreprocessConfig(
     ),
     clip_batch_size=5,
 )
+
+
+@contextlib.contextmanager
+def one_thread():
+    """Torch on one thread, as each Ray actor (1 CPU) runs: on a CPU, features depend on the
+    thread count in their last bit (and numba's parallel loops elsewhere in the test session
+    raise this process's OpenMP thread count)."""
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(previous)
 
 
 @pytest.fixture(scope="module")
@@ -73,8 +88,9 @@ def scenes(tmp_path_factory, models) -> Path:
     _scene(root, "a", 3, seed=0)
     _scene(root, "b", 2, seed=1)
     segmenter, encoder = load_preprocess_models(models["sam"], models["clip"])
-    for target in _targets(root, "reference"):
-        preprocess_images(target.jobs, target.output, segmenter, encoder, PERMISSIVE)
+    with one_thread():
+        for target in _targets(root, "reference"):
+            preprocess_images(target.jobs, target.output, segmenter, encoder, PERMISSIVE)
     return root
 
 
@@ -136,7 +152,8 @@ def test_ray_resumes_and_skips_finished_views(scenes, models, local_ray):
     targets = _targets(scenes, "resumed")
     # scene a's first two views finished in an earlier, in-process run
     segmenter, encoder = load_preprocess_models(models["sam"], models["clip"])
-    preprocess_images(targets[0].jobs[:2], targets[0].output, segmenter, encoder, PERMISSIVE)
+    with one_thread():
+        preprocess_images(targets[0].jobs[:2], targets[0].output, segmenter, encoder, PERMISSIVE)
     seen = []
     summaries = preprocess_with_ray(
         targets,

@@ -10,7 +10,8 @@ the result, byte for byte:
   pool of actors preprocesses it (``map_batches`` with a callable class): each actor loads SAM and
   CLIP once (:func:`thgs.guidance.preprocess.load_preprocess_models`), then reads, preprocesses and
   writes one view at a time with the code :func:`preprocess_images` runs, its two files atomically
-  (``_s.npy`` last, so a crashed or cancelled run resumes like an in-process one);
+  (``_s.npy`` last, so a crashed or cancelled run resumes like an in-process one), with as many
+  torch threads as Ray gives it CPUs (one);
 - only a small row per image comes back through Ray's object store (its folder, stem, seconds,
   masks per level, and the error if it failed), never the masks or features.
 
@@ -119,6 +120,12 @@ class _ViewWorker:
     size) into their folders and returns one small row per image."""
 
     def __init__(self, models: _Models, config: PreprocessConfig):
+        import ray
+
+        # as many torch threads as CPUs Ray gave the actor, whatever the node's environment:
+        # on a CPU, float sums in CLIP and SAM depend on the thread count in their last bit
+        cpus = ray.get_runtime_context().get_assigned_resources().get("CPU", 1.0)
+        torch.set_num_threads(max(1, int(cpus)))
         self._segmenter, self._encoder = models.load()
         self._config = config
 
@@ -248,7 +255,10 @@ def preprocess_with_ray(
 
     The files written are those :func:`thgs.guidance.preprocess.preprocess_images` writes with
     ``load_preprocess_models(sam, clip, space=space, device=device, dtype=dtype)``, byte for byte,
-    except that a local model folder is recorded in ``preprocess.json`` by its absolute path.
+    except that a local model folder is recorded in ``preprocess.json`` by its absolute path. On
+    a CPU that holds for an in-process run with one torch thread (``torch.set_num_threads(1)``),
+    as each actor runs: other thread counts sum floats in another order, which changes features
+    in their last bit.
 
     Args:
         targets: the folders and their images.
