@@ -16,7 +16,7 @@ python=${THGS_PYTHON:-python3}
 constraints=$root/scripts/constraints.txt
 # gsplat ([gpu]) is a pure-Python wheel that compiles its CUDA kernels on first use on a GPU; on a
 # CPU machine it is installed too, for the tests against its pure-torch projection.
-extras=${THGS_EXTRAS:-models,viewer,gpu,demo,bench,dev}
+extras=${THGS_EXTRAS:-models,viewer,gpu,demo,bench,cluster,dev}
 
 # The browser test (tests/test_viewer_browser.py) drives Debian's Chromium through Playwright.
 # Install it where apt can (as root, or with password-less sudo); THGS_CHROMIUM=0 skips this.

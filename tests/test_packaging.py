@@ -95,6 +95,18 @@ def test_metadata_urls_extras_and_the_partition_dependency(metadata):
         environment = {"python_version": python, "extra": ""}
         (active,) = [r for r in numpy if r.marker is None or r.marker.evaluate(environment)]
         assert active.specifier.contains(allowed) and not active.specifier.contains(refused)
+    # pyarrow 26 needs NumPy 2 at runtime (its metadata does not say so): the cluster extra keeps
+    # it below 26 where NumPy 1 is required
+    pyarrow = [r for r in _requirements(metadata) if r.name == "pyarrow"]
+    for python, allowed, refused in (("3.11", "25.0.1", "26.0.0"), ("3.13", None, None)):
+        environment = {"python_version": python, "extra": "cluster"}
+        active = [r for r in pyarrow if r.marker.evaluate(environment)]
+        if allowed is None:
+            assert active == []
+        else:
+            (requirement,) = active
+            assert requirement.specifier.contains(allowed)
+            assert not requirement.specifier.contains(refused)
     # torch is never pinned by the package (the user picks the build)
     assert core["torch"].specifier.contains("2.13.0") and core["torch"].specifier.contains("9.0")
 
@@ -232,6 +244,18 @@ def _clip_image():
     CLIPImageEncoder()
 
 
+def _connect_ray():
+    from thgs.cluster import connect_ray
+
+    connect_ray("127.0.0.1:1")
+
+
+def _preprocess_with_ray():
+    from thgs.guidance.preprocess import preprocess_with_ray
+
+    preprocess_with_ray([], sam="sam", clip="clip")
+
+
 def _matplotlib():
     from thgs.bench import require_matplotlib
 
@@ -254,8 +278,20 @@ def _gsplat():
         ("transformers", "models", _clip_image),
         ("matplotlib", "bench", _matplotlib),
         ("gsplat", "gpu", _gsplat),
+        ("ray", "cluster", _connect_ray),
+        ("ray", "cluster", _preprocess_with_ray),
     ],
-    ids=["viewer", "minilm", "clip-text", "sam", "clip-image", "bench-plot", "gsplat"],
+    ids=[
+        "viewer",
+        "minilm",
+        "clip-text",
+        "sam",
+        "clip-image",
+        "bench-plot",
+        "gsplat",
+        "ray-connect",
+        "ray-preprocess",
+    ],
 )
 def test_a_part_without_its_extra_names_the_extra(module, extra, use, monkeypatch):
     """With the extra's module missing (None in sys.modules makes its import fail), the part

@@ -13,16 +13,24 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from conftest import run_cli as run
 from thgs.cli import entrypoint
 from thgs.errors import InputError
 from thgs.suite import SuiteConfig, find_suite, plan_scene, run_suite, scene_folder
-from thgs.synthetic.layouts import write_3dovs, write_langsplat_lerf
+from thgs.synthetic.layouts import write_3dovs, write_langsplat_lerf, write_opengaussian_scannet
 
 ray = pytest.importorskip("ray")
 
-SCENES = ["lerf_ovs/ramen", "lerf_ovs/teatime", "3dovs/bed", "3dovs/sofa", "synthetic/kitchen"]
+SCENES = [
+    "lerf_ovs/ramen",
+    "lerf_ovs/teatime",
+    "3dovs/bed",
+    "3dovs/sofa",
+    "scannet/scene0000_00",
+    "synthetic/kitchen",
+]
 
 
 @pytest.fixture(scope="module")
@@ -37,7 +45,8 @@ def second_dataset(tmp_path_factory):
 @pytest.fixture(scope="module")
 def suite_root(small_dataset, second_dataset, tmp_path_factory):
     """The suite: LangSplat's lerf_ovs/ (one cfg_args naming a path from another machine),
-    3D-OVS scenes, a synthetic dataset; models in output/<scene>."""
+    3D-OVS scenes, OpenGaussian's ScanNet layout, a synthetic dataset; models in
+    output/<scene>."""
     root = tmp_path_factory.mktemp("suite") / "root"
     write_langsplat_lerf(small_dataset, root, "teatime", link=True)
     write_langsplat_lerf(
@@ -45,6 +54,7 @@ def suite_root(small_dataset, second_dataset, tmp_path_factory):
     )
     write_3dovs(small_dataset, root, "bed", link=True)
     write_3dovs(second_dataset, root, "sofa", link=True)
+    write_opengaussian_scannet(small_dataset, root, "scene0000_00")
     (root / "synthetic").mkdir()
     (root / "synthetic" / "kitchen").symlink_to(second_dataset, target_is_directory=True)
     return root
@@ -95,6 +105,9 @@ def test_the_suite_is_found_in_its_layouts(suite_root):
     )
     assert by_key["3dovs/bed"].protocols == ("3dovs",)
     assert by_key["3dovs/bed"].model == suite_root / "output" / "bed"
+    scannet = by_key["scannet/scene0000_00"]
+    assert scannet.protocols == ("scannet",)
+    assert scannet.model == suite_root / "output" / "scene0000_00"
     kitchen = by_key["synthetic/kitchen"]
     assert kitchen.model == kitchen.data  # a synthetic dataset is its own model
     assert kitchen.protocols == (
@@ -112,10 +125,10 @@ def test_select_picks_benchmarks_keys_and_names(suite_root):
     keys = [s.key for s in find_suite(suite_root, ["3dovs", "teatime", "synthetic/kitchen"])]
     assert keys == ["lerf_ovs/teatime", "3dovs/bed", "3dovs/sofa", "synthetic/kitchen"]
     with pytest.raises(InputError) as caught:
-        find_suite(suite_root, ["scannet"])
+        find_suite(suite_root, ["replica"])
     assert str(caught.value) == (
-        "--select: 'scannet' is no benchmark or scene here; benchmarks: 3dovs, lerf_ovs, "
-        "synthetic; scenes: " + ", ".join(SCENES)
+        "--select: 'replica' is no benchmark or scene here; benchmarks: 3dovs, lerf_ovs, "
+        "scannet, synthetic; scenes: " + ", ".join(SCENES)
     )
 
 
@@ -321,7 +334,10 @@ def models(tmp_path_factory):
     return {"sam": tiny_models.tiny_sam(root / "sam"), "clip": tiny_models.tiny_clip(root / "clip")}
 
 
-def test_a_scene_without_features_is_preprocessed_into_the_output(small_dataset, tmp_path, models):
+@pytest.mark.parametrize("executor", ["in-process", "ray"])
+def test_a_scene_without_features_is_preprocessed_into_the_output(
+    small_dataset, tmp_path, models, executor, request, monkeypatch
+):
     from thgs.guidance.preprocess import (
         MaskGeneratorConfig,
         PreprocessConfig,
@@ -345,7 +361,15 @@ def test_a_scene_without_features_is_preprocessed_into_the_output(small_dataset,
     (scene,) = find_suite(root)
     assert scene.guidance is None and scene.images == data / "images"
     assert [p.action for p in plan_scene(scene, tmp_path / "out", config)] == ["run"] * 3
-    report = run_suite([scene], tmp_path / "out", config)
+    # CLIP's sums depend on torch's thread count in the last bit; Ray's actors run on one thread
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    request.addfinalizer(lambda: torch.set_num_threads(threads))
+    use_ray = executor == "ray"
+    if use_ray:
+        request.getfixturevalue("local_ray")
+    report = run_suite([scene], tmp_path / "out", config, use_ray=use_ray)
+    assert report.executor == executor
     assert not report.failed, report.failed
     assert report.scenes[0].stages == dict.fromkeys(("preprocess", "build", "eval"), "ran")
     assert not (data / "language_features").exists()  # the dataset is never written into
@@ -362,8 +386,39 @@ def test_a_scene_without_features_is_preprocessed_into_the_output(small_dataset,
             np.testing.assert_array_equal(
                 np.load(made / f"{job.stem}{suffix}"), np.load(by_hand / f"{job.stem}{suffix}")
             )
-    again = run_suite([scene], tmp_path / "out", config)
+    again = run_suite([scene], tmp_path / "out", config, use_ray=use_ray)
     assert again.scenes[0].stages == dict.fromkeys(("preprocess", "build", "eval"), "current")
+
+
+def test_an_unreadable_image_on_ray_fails_its_scene_only(
+    small_dataset, tmp_path, models, local_ray
+):
+    from thgs.guidance.preprocess import MaskGeneratorConfig, PreprocessConfig
+
+    root = tmp_path / "root"
+    for name in ("bed", "sofa"):
+        data = write_3dovs(small_dataset, root, name)
+        shutil.rmtree(data / "language_features")
+    broken = sorted((root / "3dovs" / "sofa" / "images").iterdir())[1]
+    broken.write_bytes(b"not an image")
+    config = SuiteConfig(
+        device="cpu",
+        sam=str(models["sam"]),
+        clip=str(models["clip"]),
+        preprocess=PreprocessConfig(
+            masks=MaskGeneratorConfig(
+                points_per_side=4, pred_iou_threshold=0.0, stability_threshold=0.0, crop_layers=0
+            )
+        ),
+    )
+    report = run_suite(find_suite(root), tmp_path / "out", config, use_ray=True)
+    results = {scene.name: scene for scene in report.scenes}
+    assert results["bed"].ok and results["bed"].stages["preprocess"] == "ran"
+    assert not results["sofa"].ok and results["sofa"].stages == {
+        "preprocess": "failed", "build": "not run", "eval": "not run"
+    }  # fmt: skip
+    assert str(broken) in results["sofa"].error
+    assert not (tmp_path / "out" / "3dovs" / "sofa" / "field.thgs").exists()
 
 
 def test_a_ray_address_that_does_not_answer_is_an_error(suite_root, tmp_path, capsys):
@@ -375,7 +430,9 @@ def test_a_ray_address_that_does_not_answer_is_an_error(suite_root, tmp_path, ca
     argv = ["suite", str(suite_root), "-o", str(tmp_path / "o"), "--ray", f"127.0.0.1:{port}"]
     code, printed, err = run(argv, capsys)
     assert code == 2 and printed == ""
-    assert " ".join(err.split()).startswith(f"error: Ray at 127.0.0.1:{port}: does not answer")
+    assert " ".join(err.split()).startswith(
+        f"error: 127.0.0.1:{port}: no Ray cluster answers there"
+    )
     assert not (tmp_path / "o" / "report.json").exists()
 
 

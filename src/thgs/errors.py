@@ -28,3 +28,8 @@ class InputError(ThgsError, ValueError):
         self.source = os.fspath(source)
         self.problem = problem
         super().__init__(f"{self.source}: {problem}")
+
+    def __reduce__(self):
+        # pickled with its source and problem, so that it survives a trip between processes
+        # (a Ray worker's error re-raised in the driver) as the same type and message
+        return type(self), (self.source, self.problem)

@@ -32,7 +32,7 @@ import os
 import time
 import traceback
 from collections.abc import Callable, Iterator, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
 
@@ -536,59 +536,21 @@ def run_scene(
 # --- the suite ------------------------------------------------------------------------------------
 
 
-_ANSWER_SECONDS = 10.0
-"""How long a Ray cluster's address has to accept a connection."""
-
-
-def _check_answers(address: str) -> None:
-    """Refuse a ``host:port`` (or ``ray://host:port``) nobody listens on, at once rather than
-    after Ray's own minutes of retries; ``auto`` and other forms are left to Ray.
-
-    Raises:
-        ThgsError: the address does not accept a connection within :data:`_ANSWER_SECONDS`.
-    """
-    import socket
-
-    host, colon, port = address.removeprefix("ray://").rpartition(":")
-    if not colon or not port.isdigit() or not host:
-        return
-    try:
-        with socket.create_connection((host.strip("[]"), int(port)), timeout=_ANSWER_SECONDS):
-            pass
-    except OSError as error:
-        raise ThgsError(
-            f"Ray at {address}: does not answer ({error.strerror or error}); start the cluster "
-            "with ray start --head, or leave the address out for a local Ray"
-        ) from error
-
-
 @contextlib.contextmanager
 def _connect(address: str | None) -> Iterator[Any]:
-    """Ray, connected: to the cluster at ``address`` or, for None, a local Ray started here
-    (shut down afterwards). A Ray already initialised in this process is used as it is.
+    """Ray, connected (:func:`thgs.cluster.connect_ray`): to the cluster at ``address`` or, for
+    None, a local Ray started here and shut down afterwards. A Ray already initialised in this
+    process is used as it is.
 
     Raises:
         ThgsError: Ray is not installed, or the cluster does not answer.
     """
-    try:
+    from thgs.cluster import connect_ray
+
+    with connect_ray(address):
         import ray
-    except ImportError as error:
-        raise ThgsError(
-            "--ray runs scenes as Ray tasks and needs Ray: pip install 'thgs[cluster]'"
-        ) from error
-    if address is not None:
-        _check_answers(address)
-    if ray.is_initialized():
+
         yield ray
-        return
-    try:
-        ray.init(address=address, include_dashboard=False, log_to_driver=False)
-    except (ConnectionError, RuntimeError, ValueError) as error:
-        raise ThgsError(f"Ray at {address}: does not answer ({error})") from error
-    try:
-        yield ray
-    finally:
-        ray.shutdown()
 
 
 def _run_in_process(scenes, out, config, progress) -> list[SceneResult]:
@@ -628,47 +590,76 @@ def _resources(ray, device: str) -> dict[str, float]:
     return {"num_cpus": 1, "num_gpus": gpus}
 
 
-def _preprocess_on_ray(scenes, out, config, ray, progress) -> None:
-    """Preprocess every scene that needs it in one Ray Data pipeline, then stamp them."""
-    waiting = [s for s in scenes if not s.problems and _plans_preprocessing(s, out, config)]
-    if not waiting:
-        return
+def _preprocess_on_ray(scenes, out, config, ray, progress) -> dict[str, str | None]:
+    """Preprocess every scene that needs it in one Ray Data pipeline and stamp the scenes it
+    finished. Returns scene key → None for each scene preprocessed here, or the one-line
+    reason its preprocessing failed (the pipeline goes on past a failing image: other scenes'
+    views are finished and stamped)."""
     from thgs.guidance.preprocess import image_jobs
     from thgs.guidance.preprocess.distributed import PreprocessTarget, preprocess_with_ray
+    from thgs.guidance.preprocess.run import is_finished
     from thgs.scene import load_cameras
 
-    targets = []
-    for scene in waiting:
+    outcome: dict[str, str | None] = {}
+    waiting, targets = [], []
+    for scene in scenes:
+        if scene.problems or not _plans_preprocessing(scene, out, config):
+            continue
         assert scene.images is not None
-        jobs = image_jobs(scene.images, cameras=load_cameras(scene.data)[0])
+        try:
+            jobs = image_jobs(scene.images, cameras=load_cameras(scene.data)[0])
+        except (ThgsError, OSError) as error:
+            outcome[scene.key] = _one_line(error)
+            continue
+        waiting.append(scene)
         targets.append(PreprocessTarget(tuple(jobs), scene_folder(out, scene) / GUIDANCE))
         if progress is not None:
             progress(scene.key, "preprocess")
+    if not waiting:
+        return outcome
     gpus = _resources(ray, config.device)["num_gpus"]
     started = time.perf_counter()
-    summaries = preprocess_with_ray(
-        targets,
-        sam=config.sam,
-        clip=config.clip,
-        config=config.preprocess,
-        device="cuda" if gpus else "cpu",
-        gpus_per_actor=gpus,
-    )
+    failure = None
+    try:
+        summaries = preprocess_with_ray(
+            targets,
+            sam=config.sam,
+            clip=config.clip,
+            config=config.preprocess,
+            device="cuda" if gpus else "cpu",
+            gpus_per_actor=gpus,
+        )
+    except ThgsError as error:  # the first failing image; the others' views are written
+        failure, summaries = _one_line(error), [None] * len(targets)
     seconds = (time.perf_counter() - started) / len(waiting)
     for scene, target, summary in zip(waiting, targets, summaries):
+        if summary is None and not all(is_finished(target.output, j.stem) for j in target.jobs):
+            outcome[scene.key] = f"preprocessing on Ray: {failure}"
+            continue
         folder = scene_folder(out, scene)
         digest = _digest(_inputs(scene, folder, config, "preprocess"))
-        extra = {"images": len(target.jobs), "masks": list(summary.masks)}
+        extra = {"images": len(target.jobs)}
+        if summary is not None:
+            extra["masks"] = list(summary.masks)
         _write_stamp(folder, "preprocess", {"digest": digest, "seconds": seconds, **extra})
+        outcome[scene.key] = None
+    return outcome
 
 
 def _run_on_ray(scenes, out, config, ray, progress) -> list[SceneResult]:
-    _preprocess_on_ray(scenes, out, config, ray, progress)
+    preprocessed = _preprocess_on_ray(scenes, out, config, ray, progress)
     task = ray.remote(run_scene).options(**_resources(ray, config.device), max_retries=0)
+    results: list[SceneResult | None] = [None] * len(scenes)
     pending = {}
     for index, scene in enumerate(scenes):
+        failure = preprocessed.get(scene.key)
+        if failure is not None:
+            stages = {**dict.fromkeys(STAGES, "not run"), "preprocess": "failed"}
+            results[index] = SceneResult(scene.benchmark, scene.name, stages, error=failure)
+            if progress is not None:
+                progress(scene.key, f"failed: {failure}")
+            continue
         pending[task.remote(scene, Path(out).resolve(), config)] = index
-    results: list[SceneResult | None] = [None] * len(scenes)
     try:
         while pending:
             ready, _ = ray.wait(list(pending), num_returns=1)
@@ -680,6 +671,8 @@ def _run_on_ray(scenes, out, config, ray, progress) -> list[SceneResult]:
                 message = _one_line(error).splitlines()[0][:500]
                 stages = {**dict.fromkeys(STAGES, "not run"), "build": "failed"}
                 result = SceneResult(scene.benchmark, scene.name, stages, error=message)
+            if scene.key in preprocessed:  # preprocessed by the pipeline above
+                result = replace(result, stages={**result.stages, "preprocess": "ran"})
             results[index] = result
             if progress is not None:
                 progress(scene.key, _end_state(result))

@@ -6,10 +6,12 @@ LangSplat's layout (:mod:`thgs.guidance.langsplat`).
   levels s, m, l (and pooled as ``default``), SAM's filters and LangSplat's mask NMS;
 - :class:`CLIPImageEncoder`, :func:`mask_features` — one CLIP feature per mask;
 - :func:`preprocess_image`, :func:`preprocess_images` — images to a resumable
-  ``language_features`` folder (``thgs preprocess``).
+  ``language_features`` folder (``thgs preprocess``);
+- :func:`preprocess_with_ray` — many folders' images as one Ray Data pipeline on a Ray cluster.
 """
 
 from thgs.guidance.preprocess.clip_features import CLIPImageEncoder, mask_crops, mask_features
+from thgs.guidance.preprocess.distributed import PreprocessTarget, preprocess_with_ray
 from thgs.guidance.preprocess.generator import (
     LevelMasks,
     MaskGeneratorConfig,
@@ -43,6 +45,7 @@ __all__ = [
     "PointSegmenter",
     "PreprocessConfig",
     "PreprocessSummary",
+    "PreprocessTarget",
     "crop_boxes",
     "generate_masks",
     "image_jobs",
@@ -54,6 +57,7 @@ __all__ = [
     "point_grid",
     "preprocess_image",
     "preprocess_images",
+    "preprocess_with_ray",
     "read_image",
     "segment_map",
 ]

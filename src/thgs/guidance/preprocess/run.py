@@ -255,13 +255,33 @@ def preprocess_image(
     return ViewGuidance(stem, np.stack(segments), np.concatenate(features).astype(np.float32))
 
 
-def _manifest(segmenter: PointSegmenter, encoder: CLIPImageEncoder, config) -> dict:
-    return {
-        "format": "LangSplat language_features",
-        "sam": segmenter.name,
-        "clip": encoder.space,
-        "config": asdict(config),
-    }
+# The steps of preprocess_images, shared with preprocess_with_ray (distributed.py), which runs
+# them in the driver (the folder's record, skipping, the summary) and in Ray workers (the views);
+# not in __all__.
+
+
+@dataclass(frozen=True)
+class FolderRecord:
+    """What a ``language_features`` folder records of the models and settings its views were made
+    with: the manifest (``preprocess.json``) and the features' space, dimension and local model
+    folder (``embedding.json``)."""
+
+    manifest: dict
+    space: str
+    dim: int
+    model: Path | None
+
+    @classmethod
+    def of(
+        cls, segmenter: PointSegmenter, encoder: CLIPImageEncoder, config: PreprocessConfig
+    ) -> FolderRecord:
+        manifest = {
+            "format": "LangSplat language_features",
+            "sam": segmenter.name,
+            "clip": encoder.space,
+            "config": asdict(config),
+        }
+        return cls(manifest, encoder.space, encoder.dim, getattr(encoder, "model_path", None))
 
 
 def _check_or_write_manifest(output: Path, manifest: dict, overwrite: bool) -> None:
@@ -287,8 +307,75 @@ def _check_or_write_manifest(output: Path, manifest: dict, overwrite: bool) -> N
         handle.write("\n")
 
 
-def _is_finished(output: Path, stem: str) -> bool:
+def prepare_folder(output: Path, record: FolderRecord, overwrite: bool) -> None:
+    """Create ``output`` if missing, refuse it if it was made with other models or settings (or
+    features of another space) unless ``overwrite``, and record ``record`` in it."""
+    output.mkdir(parents=True, exist_ok=True)
+    _check_or_write_manifest(output, record.manifest, overwrite)
+    recorded = read_embedding_space(output)
+    if recorded is not None and recorded != (record.space, record.dim) and not overwrite:
+        raise InputError(
+            output,
+            f"holds {recorded[0]} features ({recorded[1]}-D), not {record.space} "
+            f"({record.dim}-D); write to a new folder, or start again with --overwrite",
+        )
+    write_embedding_space(output, record.space, record.dim, model=record.model)
+
+
+def is_finished(output: Path, stem: str) -> bool:
     return (output / f"{stem}_s.npy").is_file()
+
+
+@dataclass(frozen=True)
+class ViewResult:
+    """One image preprocessed: its stem, seconds taken and masks per level (``LEVELS`` order)."""
+
+    stem: str
+    seconds: float
+    masks: tuple[int, int, int, int]
+
+
+def preprocess_view(
+    job: ImageJob,
+    output: Path,
+    segmenter: PointSegmenter,
+    encoder: CLIPImageEncoder,
+    config: PreprocessConfig,
+) -> ViewResult:
+    """Read, preprocess and write one view (its two files atomically, ``_s.npy`` last)."""
+    start = time.perf_counter()
+    image = read_image(job.path, job.size, max_height=config.max_height)
+    guidance = preprocess_image(image, job.stem, segmenter, encoder, config)
+    write_view_guidance(output, guidance)
+    found = tuple(len(guidance.level_ids(level)) for level in range(len(LEVELS)))
+    seconds = time.perf_counter() - start
+    logger.info("%s: %d masks in %.2f s", job.stem, len(guidance.features), seconds)
+    return ViewResult(job.stem, seconds, found)
+
+
+def summarize(
+    output: Path, results: Sequence[ViewResult], skipped: list[str], config: PreprocessConfig
+) -> PreprocessSummary:
+    """The summary of one folder's run, warning when SAM kept no mask in most images done."""
+    counts = np.zeros(len(LEVELS), dtype=np.int64)
+    for result in results:
+        counts += result.masks
+    empty = [result.stem for result in results if not any(result.masks)]
+    if results and 2 * len(empty) > len(results):
+        logger.warning(
+            "%s: SAM kept no mask in %d of %d images (first: %s), and a field needs masks; "
+            "lower SAM's thresholds: --pred-iou-threshold (now %g), --stability-threshold "
+            "(now %g), --min-region-area (now %d)",
+            output,
+            len(empty),
+            len(results),
+            empty[0],
+            config.masks.pred_iou_threshold,
+            config.masks.stability_threshold,
+            config.masks.min_region_area,
+        )
+    done = {result.stem: result.seconds for result in results}
+    return PreprocessSummary(done, skipped, tuple(int(c) for c in counts), empty)
 
 
 def preprocess_images(
@@ -319,51 +406,16 @@ def preprocess_images(
             its embedding space differs, or an image is unreadable.
     """
     output = Path(output)
-    output.mkdir(parents=True, exist_ok=True)
-    _check_or_write_manifest(output, _manifest(segmenter, encoder, config), overwrite)
-    recorded = read_embedding_space(output)
-    if recorded is not None and recorded != (encoder.space, encoder.dim) and not overwrite:
-        raise InputError(
-            output,
-            f"holds {recorded[0]} features ({recorded[1]}-D), not {encoder.space} "
-            f"({encoder.dim}-D); write to a new folder, or start again with --overwrite",
-        )
-    write_embedding_space(
-        output, encoder.space, encoder.dim, model=getattr(encoder, "model_path", None)
-    )
-    done: dict[str, float] = {}
+    prepare_folder(output, FolderRecord.of(segmenter, encoder, config), overwrite)
+    results: list[ViewResult] = []
     skipped: list[str] = []
-    empty: list[str] = []
-    counts = np.zeros(len(LEVELS), dtype=np.int64)
     for job in jobs:
-        if not overwrite and _is_finished(output, job.stem):
+        if not overwrite and is_finished(output, job.stem):
             skipped.append(job.stem)
             if on_image is not None:
                 on_image(job.stem, None)
             continue
-        start = time.perf_counter()
-        image = read_image(job.path, job.size, max_height=config.max_height)
-        guidance = preprocess_image(image, job.stem, segmenter, encoder, config)
-        write_view_guidance(output, guidance)
-        found = [len(guidance.level_ids(level)) for level in range(len(LEVELS))]
-        counts += found
-        if not any(found):
-            empty.append(job.stem)
-        done[job.stem] = time.perf_counter() - start
-        logger.info("%s: %d masks in %.2f s", job.stem, len(guidance.features), done[job.stem])
+        results.append(preprocess_view(job, output, segmenter, encoder, config))
         if on_image is not None:
-            on_image(job.stem, done[job.stem])
-    if done and 2 * len(empty) > len(done):
-        logger.warning(
-            "%s: SAM kept no mask in %d of %d images (first: %s), and a field needs masks; "
-            "lower SAM's thresholds: --pred-iou-threshold (now %g), --stability-threshold "
-            "(now %g), --min-region-area (now %d)",
-            output,
-            len(empty),
-            len(done),
-            empty[0],
-            config.masks.pred_iou_threshold,
-            config.masks.stability_threshold,
-            config.masks.min_region_area,
-        )
-    return PreprocessSummary(done, skipped, tuple(int(c) for c in counts), empty)
+            on_image(job.stem, results[-1].seconds)
+    return summarize(output, results, skipped, config)
