@@ -228,12 +228,12 @@ def test_thgs_view_serves_until_interrupted(small_field):
         moved = urlsplit(line.split()[2]).port
         assert moved != port and _serves(line.split()[2])
         second.send_signal(signal.SIGINT)
-        assert second.wait(timeout=30) == 0
+        assert second.wait(timeout=120) == 0
         err = " ".join(second.stderr.read().split())
         assert f"port {port} is in use; serving on port {moved}" in err
         assert f"{missing}: semantic field file not found" in err
         process.send_signal(signal.SIGINT)
-        assert process.wait(timeout=30) == 0
+        assert process.wait(timeout=120) == 0
         assert "viser" not in process.stdout.read()
     finally:
         for running in (process, second):
