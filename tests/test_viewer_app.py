@@ -191,6 +191,25 @@ def test_a_port_in_use_moves_to_the_next_free_one(small_field):
             app.stop()
 
 
+def _interruptible() -> None:
+    """In the child before it runs: Ctrl-C delivered and handled as a terminal's would be, even if
+    this test process had SIGINT blocked or ignored (libraries loaded by earlier tests may leave
+    either, and a child inherits both)."""
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
+def _ended(process: subprocess.Popen) -> tuple[str, str]:
+    """The output of a viewer told to stop; one that has not stopped within 120 s is made to
+    dump every thread's stack (faulthandler, on SIGABRT) and the test fails with them."""
+    try:
+        return process.communicate(timeout=120)  # reads the pipes: a full one would block it
+    except subprocess.TimeoutExpired:
+        process.send_signal(signal.SIGABRT)
+        _, err = process.communicate(timeout=30)
+        pytest.fail(f"the viewer did not stop within 120 s after Ctrl-C; its threads:\n{err}")
+
+
 def test_thgs_view_serves_until_interrupted(small_field):
     with socket.socket() as probe:
         probe.bind(("127.0.0.1", 0))
@@ -203,7 +222,8 @@ def test_thgs_view_serves_until_interrupted(small_field):
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
-        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+        env={**os.environ, "PYTHONUNBUFFERED": "1", "PYTHONFAULTHANDLER": "1"},
+        preexec_fn=_interruptible,
     )
     second = None
     try:
@@ -221,20 +241,28 @@ def test_thgs_view_serves_until_interrupted(small_field):
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
             text=True,
-            env={**os.environ, "PYTHONUNBUFFERED": "1", "COLUMNS": "200"},
+            preexec_fn=_interruptible,
+            env={
+                **os.environ,
+                "PYTHONUNBUFFERED": "1",
+                "PYTHONFAULTHANDLER": "1",
+                "COLUMNS": "200",
+            },
         )
         line = second.stdout.readline()
         assert line.startswith("thgs view: http://127.0.0.1:") and "(no field open)" in line
         moved = urlsplit(line.split()[2]).port
         assert moved != port and _serves(line.split()[2])
         second.send_signal(signal.SIGINT)
-        assert second.wait(timeout=120) == 0
-        err = " ".join(second.stderr.read().split())
+        _, err = _ended(second)
+        assert second.returncode == 0, err
+        err = " ".join(err.split())
         assert f"port {port} is in use; serving on port {moved}" in err
         assert f"{missing}: semantic field file not found" in err
         process.send_signal(signal.SIGINT)
-        assert process.wait(timeout=120) == 0
-        assert "viser" not in process.stdout.read()
+        printed, err = _ended(process)
+        assert process.returncode == 0, err
+        assert "viser" not in printed
     finally:
         for running in (process, second):
             if running is not None and running.poll() is None:
