@@ -847,6 +847,21 @@ def test_ctrl_c_during_bench_leaves_no_report_and_no_half_dataset(
     assert (len(scene.gaussians), len(scene.cameras), len(guidance)) == (2000, 4, 4)
 
 
+def _interrupt_at_rename(monkeypatch, call: int) -> list[str]:
+    """Ctrl-C at the ``call``-th ``os.replace`` (the renames before and after it happen): the
+    renamed targets' names, in order, as they come."""
+    real, calls = os.replace, []
+
+    def interrupted(source, target):
+        calls.append(Path(target).name)
+        if len(calls) == call:
+            raise KeyboardInterrupt
+        real(source, target)
+
+    monkeypatch.setattr(os, "replace", interrupted)
+    return calls
+
+
 @pytest.mark.parametrize("replace_call", range(1, 7))
 def test_ctrl_c_while_bench_writes_its_report_leaves_none_of_it(
     replace_call, tmp_path, capsys, monkeypatch
@@ -869,19 +884,10 @@ def test_ctrl_c_while_bench_writes_its_report_leaves_none_of_it(
     machine = {"processor": "x86_64", "cpus": 2, "torch_threads": 2, "cuda": None}
     report = BenchReport((run_,), machine, asdict(BenchConfig(presets=("synth-small",))))
     monkeypatch.setattr(thgs.bench, "run_bench", lambda *args, **kwargs: report)
-    real, calls = os.replace, []
-
-    def interrupted(source, target):
-        calls.append(Path(target).name)
-        if len(calls) == replace_call:
-            raise KeyboardInterrupt
-        real(source, target)
-
     out = tmp_path / "out"
     argv = ["bench", "-o", str(out), "--presets", "synth-small", "--variants", "full"]
-    monkeypatch.setattr(os, "replace", interrupted)
+    calls = _interrupt_at_rename(monkeypatch, replace_call)
     code, _, err = run(argv, capsys)
-    monkeypatch.setattr(os, "replace", real)
     assert code == 130 and err.strip().splitlines()[-1] == "error: interrupted", err
     assert len(calls) == replace_call and _written(tmp_path) == []
     if replace_call >= 4:
@@ -903,20 +909,11 @@ def test_ctrl_c_at_any_rename_of_eval_leaves_no_report(
 ):
     """eval's report and its table are written to a hidden folder (renames 1–2) and moved in
     together (3–4): Ctrl-C at any of them leaves neither and no temporary."""
-    real, calls = os.replace, []
-
-    def interrupted(source, target):
-        calls.append(Path(target).name)
-        if len(calls) == replace_call:
-            raise KeyboardInterrupt
-        real(source, target)
-
     out = tmp_path / "out"
     argv = ["eval", str(small_dataset), str(small_field), "--protocol", "hierarchy"]
     argv += ["-o", str(out / "r.json")]
-    monkeypatch.setattr(os, "replace", interrupted)
+    calls = _interrupt_at_rename(monkeypatch, replace_call)
     code, _, err = run(argv, capsys)
-    monkeypatch.setattr(os, "replace", real)
     assert code == 130 and err.strip().splitlines()[-1] == "error: interrupted", err
     assert len(calls) == replace_call and _written(tmp_path) == []
     code, _, err = run(argv, capsys)
