@@ -21,22 +21,25 @@ from PIL import Image
 
 from thgs import load_cameras, load_scene
 from thgs.cli import entrypoint
+from thgs.demo import synthetic_dataset
 from thgs.errors import InputError
 from thgs.eval import read_3dovs_segmentations, read_lerf_labels, read_scannet_labels
 from thgs.eval.ground_truth import read_hierarchy
 from thgs.guidance import load_guidance, read_embedding_space
 from thgs.synthetic import (
+    DATASET_VERSION,
     DatasetConfig,
     OracleConfig,
     SceneConfig,
     check_dataset_output,
     evaluation_views,
     generate_scene,
+    is_current_dataset,
     label_categories,
     render_view,
     write_dataset,
 )
-from thgs.synthetic.dataset import SCANNET_LABELS
+from thgs.synthetic.dataset import SCANNET_LABELS, _class_masks
 from thgs.synthetic.oracle import ground_truth_maps
 from thgs.text import MINILM_SPACE
 
@@ -147,15 +150,19 @@ def test_labels_rasterize_back_to_the_ground_truth(dataset, scene):
         for category, (level, nodes) in expected.items():
             truth = np.isin(maps[level], nodes)
             np.testing.assert_array_equal(labels.category_mask(category), truth)
-        # 3DOVS masks: every object class, at the camera resolution
+        # 3DOVS masks: every object class at the camera resolution, but for slivers: a class
+        # covering 1 to min_label_pixels - 1 pixels is not labelled, one covering none is empty
         segmentations = read_3dovs_segmentations(dataset / "segmentations")
         assert segmentations.classes == tuple(sorted(set(scene.hierarchy.names[3])))
         masks = segmentations.views[f"{index:02d}"]
-        assert set(masks) == set(segmentations.classes)
-        for name, mask in masks.items():
-            assert mask.shape == (TINY.height, TINY.width)
+        for name in segmentations.classes:
             nodes = [i for i, node in enumerate(scene.hierarchy.names[3]) if node == name]
-            np.testing.assert_array_equal(mask, np.isin(maps[2], nodes))
+            truth = np.isin(maps[2], nodes)
+            if 0 < truth.sum() < DATASET.min_label_pixels:
+                assert name not in masks
+                continue
+            assert masks[name].shape == (TINY.height, TINY.width)
+            np.testing.assert_array_equal(masks[name], truth)
     assert sorted(p.stem for p in (dataset / "label").iterdir()) == [
         scene.cameras.stems[i] for i in evaluated
     ]
@@ -339,6 +346,48 @@ def test_modes_follow_the_umask_and_a_killed_run_is_cleaned_by_the_next(
     write_dataset(killed, scene, encoder, oracle=OracleConfig(seed=7), config=DATASET)
     assert _hidden(tmp_path) == []
     assert _digest(killed) == _digest(dataset)
+
+
+def test_3dovs_slivers_are_not_labelled_and_absent_classes_are_empty(tmp_path, scene, encoder):
+    # In view 0 of TINY the bottle covers 49 pixels and the potted plant 74 (the chair 393):
+    # with min_label_pixels = 80 neither of the two gets a mask there; the others keep theirs.
+    out = tmp_path / "slivers"
+    config = DatasetConfig(evaluation_views=2, min_label_pixels=80)
+    write_dataset(out, scene, encoder, oracle=OracleConfig(seed=7), config=config)
+    segmentations = read_3dovs_segmentations(out / "segmentations")
+    _, max_id = render_view(scene, 0, config.background)
+    maps = ground_truth_maps(max_id, scene.hierarchy)
+    counts = {
+        name: int(
+            np.isin(maps[2], np.flatnonzero(np.array(scene.hierarchy.names[3]) == name)).sum()
+        )
+        for name in segmentations.classes
+    }
+    assert counts["bottle"] == 49 and counts["potted plant"] == 74 and counts["chair"] == 393
+    expected = {name for name, count in counts.items() if not 0 < count < 80}
+    assert set(segmentations.views["00"]) == expected
+    assert {"bottle", "potted plant"}.isdisjoint(expected) and "chair" in expected
+    assert is_current_dataset(out)
+    record = json.loads((out / "synthetic.json").read_text())
+    assert record["version"] == DATASET_VERSION == "2"
+    # a class no pixel shows keeps an empty mask (absent, as in the 3D-OVS release)
+    maps = np.full((3, 4, 5), -1, dtype=np.int32)
+    maps[2, :2, :2] = 0  # object 0: 4 pixels
+    maps[2, 2:, :] = 1  # object 1: 10 pixels
+    masks = _class_masks(maps, {"a": [0], "b": [1], "c": [2]}, min_pixels=5)
+    assert set(masks) == {"b", "c"}
+    assert masks["b"].sum() == 10 and not masks["c"].any()
+
+
+def test_an_older_cached_dataset_is_written_again(tmp_path, encoder):
+    folder, generated = synthetic_dataset(tmp_path, "synth-small", 3, 3000, 3, encoder)
+    assert generated and is_current_dataset(folder)
+    assert synthetic_dataset(tmp_path, "synth-small", 3, 3000, 3, encoder) == (folder, False)
+    record = json.loads((folder / "synthetic.json").read_text())
+    (folder / "synthetic.json").write_text(json.dumps({**record, "version": "1"}))
+    assert not is_current_dataset(folder)
+    assert synthetic_dataset(tmp_path, "synth-small", 3, 3000, 3, encoder) == (folder, True)
+    assert is_current_dataset(folder)
 
 
 def test_evaluation_views_are_never_silently_fewer():

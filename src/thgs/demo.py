@@ -43,6 +43,7 @@ from thgs.synthetic import (
     OracleConfig,
     evaluation_views,
     generate_scene,
+    is_current_dataset,
     preset,
     write_dataset,
 )
@@ -264,7 +265,7 @@ def synthetic_dataset(
     if context_mix != 0.0:
         tag += f"-context{context_mix:g}"
     folder = cache / tag
-    if (folder / "synthetic.json").is_file():
+    if is_current_dataset(folder):
         logger.info("reusing the cached dataset %s", folder)
         return folder, False
     config = preset(name, **overrides)

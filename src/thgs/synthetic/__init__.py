@@ -13,10 +13,12 @@ Usage::
 """
 
 from thgs.synthetic.dataset import (
+    DATASET_VERSION,
     DatasetConfig,
     DatasetSummary,
     check_dataset_output,
     evaluation_views,
+    is_current_dataset,
     label_categories,
     render_view,
     write_dataset,
@@ -30,6 +32,7 @@ from thgs.synthetic.oracle import FaultRates, LevelMasks, OracleConfig, oracle_g
 from thgs.synthetic.scene import PRESETS, SceneConfig, SyntheticScene, generate_scene, preset
 
 __all__ = [
+    "DATASET_VERSION",
     "PRESETS",
     "DatasetConfig",
     "DatasetSummary",
@@ -41,6 +44,7 @@ __all__ = [
     "check_dataset_output",
     "evaluation_views",
     "generate_scene",
+    "is_current_dataset",
     "label_categories",
     "oracle_guidance",
     "preset",

@@ -56,11 +56,13 @@ from thgs.synthetic.scene import SyntheticScene
 from thgs.text import TextEncoder
 
 __all__ = [
+    "DATASET_VERSION",
     "SCANNET_LABELS",
     "DatasetConfig",
     "DatasetSummary",
     "check_dataset_output",
     "evaluation_views",
+    "is_current_dataset",
     "label_categories",
     "render_view",
     "write_dataset",
@@ -70,6 +72,11 @@ logger = logging.getLogger(__name__)
 
 SCANNET_LABELS = "scannet/synthetic_vh_clean_2.labels.ply"
 """Where the ScanNet-style labels go inside a dataset."""
+
+DATASET_VERSION = "2"
+"""The ``"version"`` in ``synthetic.json`` of what :func:`write_dataset` writes now. 2: a
+class covering fewer than ``min_label_pixels`` pixels of an evaluation view gets no 3DOVS mask
+there (1 wrote one)."""
 
 _MARKER = "synthetic.json"
 """The file whose ``"format": "thgs.synthetic"`` says thgs wrote the folder."""
@@ -216,6 +223,21 @@ def _frame_labels(
     return FrameLabels(f"{stem}.jpg", int(width), int(height), tuple(objects))
 
 
+def _class_masks(
+    maps: np.ndarray, class_objects: dict[str, list[int]], min_pixels: int
+) -> dict[str, np.ndarray]:
+    """The 3DOVS masks of one frame: class → [H, W] bool, True where the class's objects are.
+
+    A class covering no pixel gets an empty mask (absent from the view, as in the 3D-OVS
+    release). A class covering fewer than ``min_pixels`` pixels gets no mask at all: like the
+    LERF-OVS labels, a sliver that small is not labelled, and its IoU would be 0 or 1 by chance.
+    """
+    masks = {name: np.isin(maps[2], nodes) for name, nodes in class_objects.items()}
+    return {
+        name: mask for name, mask in masks.items() if not 0 < np.count_nonzero(mask) < min_pixels
+    }
+
+
 def _object_classes(scene: SyntheticScene) -> tuple[str, ...]:
     return tuple(sorted(set(scene.hierarchy.names[3])))
 
@@ -252,13 +274,27 @@ def _protected(folder: Path) -> str | None:
     return None
 
 
-def _is_dataset(folder: Path) -> bool:
-    """Whether ``folder`` holds the marker of a dataset thgs wrote."""
+def _record(folder: Path) -> dict | None:
+    """``folder``'s ``synthetic.json`` if it is the marker of a dataset thgs wrote, else None."""
     try:
         record = json.loads((folder / _MARKER).read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, json.JSONDecodeError):
-        return False
-    return isinstance(record, dict) and record.get("format") == "thgs.synthetic"
+        return None
+    if isinstance(record, dict) and record.get("format") == "thgs.synthetic":
+        return record
+    return None
+
+
+def _is_dataset(folder: Path) -> bool:
+    """Whether ``folder`` holds the marker of a dataset thgs wrote."""
+    return _record(folder) is not None
+
+
+def is_current_dataset(folder: str | os.PathLike[str]) -> bool:
+    """Whether ``folder`` holds a dataset that :func:`write_dataset` wrote in the current
+    :data:`DATASET_VERSION` (a cache of an older version is written again)."""
+    record = _record(Path(folder))
+    return record is not None and record.get("version") == DATASET_VERSION
 
 
 def check_dataset_output(out: str | os.PathLike[str], *, overwrite: bool = False) -> Path:
@@ -386,9 +422,9 @@ def _write(
             labels = _frame_labels(stem, maps, scene, config.min_label_pixels)
             write_lerf_labels(root / "label" / f"{stem}.json", labels)
             categories.update(dict.fromkeys(labels.categories))
-            segmentations[f"{index:02d}"] = {
-                name: np.isin(maps[2], nodes) for name, nodes in class_objects.items()
-            }
+            segmentations[f"{index:02d}"] = _class_masks(
+                maps, class_objects, config.min_label_pixels
+            )
         if progress is not None:
             progress(index + 1, len(stems))
     write_3dovs_segmentations(
@@ -398,7 +434,7 @@ def _write(
     write_hierarchy(root / "ground_truth.safetensors", scene.hierarchy)
     record = {
         "format": "thgs.synthetic",
-        "version": "1",
+        "version": DATASET_VERSION,
         "scene": asdict(scene.config),
         "oracle": asdict(oracle),
         "dataset": asdict(replace(config, evaluation_views=len(evaluated))),
