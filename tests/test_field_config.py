@@ -19,6 +19,7 @@ from thgs.errors import InputError
 from thgs.field import load_field
 from thgs.field_scene import open_field_scene
 from thgs.guidance import guidance_folder, guidance_space
+from thgs.hierarchy import MergeConfig
 from thgs.pipeline import (
     PRESETS,
     FieldConfig,
@@ -81,7 +82,7 @@ def test_every_setting_round_trips_and_is_reachable_by_set():
         if name.split(".")[-1] not in ("backend", "precision"):
             assert FieldConfig.from_json(config.to_json()) == config, name
         names.append(name)
-    assert len(names) == 59  # every setting of every stage (update when one is added)
+    assert len(names) == 60  # every setting of every stage (update when one is added)
 
 
 def test_set_takes_plain_text_for_choices():
@@ -155,6 +156,15 @@ def test_field_rebuilds_from_its_record_to_the_same_bytes(
     )  # fmt: skip
     assert code == 2 and "either --preset or --config" in err
     assert not (tmp_path / "x.thgs").exists()
+
+
+def test_a_field_recorded_before_min_support_was_built_without_it(small_field):
+    field = load_field(small_field)
+    recorded = recorded_config(field).merge
+    assert recorded.min_support == MergeConfig().min_support > 0
+    merge = {k: v for k, v in field.config["merge"].items() if k != "min_support"}
+    older = dataclasses.replace(field, config={**field.config, "merge": merge})
+    assert recorded_config(older).merge == dataclasses.replace(recorded, min_support=0.0)
 
 
 def test_the_scene_is_found_relative_to_the_field(small_dataset, small_field, tmp_path):

@@ -179,6 +179,19 @@ def test_affinity_hand_case():
     np.testing.assert_allclose(got, [1 / 1.005])
 
 
+def test_affinity_without_support_is_none():
+    # one view: Gaussian 0 (unit 0) weighs 0.5 and Gaussian 2 (unit 1) 0.01, both in mask 7:
+    # shares 0.25 and 0.005, support 0.00125, cos 1. A ratio of such sums is 1 whatever it rests
+    # on; below min_support it is no evidence at all
+    units = np.array([0, 0, 1, 1])
+    view = (np.array([0, 2]), np.array([7, 7]), np.array([0.5, 0.01]))
+    evidence = mask_evidence(_tensor(units), 2, _tensors([view]))
+    pair = np.array([[0, 1]])
+    np.testing.assert_allclose(pair_affinity(evidence, pair), [1.0])
+    np.testing.assert_allclose(pair_affinity(evidence, pair, min_support=0.00124), [1.0])
+    np.testing.assert_allclose(pair_affinity(evidence, pair, min_support=0.00126), [0.0])
+
+
 def test_growing_hand_case():
     # a chain 0 – 1 – 2 – 3 of equal units; A(0,1) = 0.95, A(1,2) = 0.95, A(0,2) = 0.5 (2 hops),
     # A(2,3) = 0.2, A(1,3) = 0.2. Unit 2 joins {0, 1} if (2·0.95 + 1·0.5) / 3 = 0.8 ≥ threshold;
@@ -307,6 +320,34 @@ def test_faint_labels_weigh_less():
     assert unweighted.counts[1] == 16
 
 
+def test_a_unit_glimpsed_once_does_not_join_another_object():
+    # superpoint 8 (object 1's first) is hidden in the four clear views; one more view glimpses
+    # it and superpoint 7 (object 0's last) faintly (max w 0.06, just above min_max_weight),
+    # both under one mask: affinity 1 on support 0.06⁴ = 1.3e-5
+    gaussians, superpoints, truth = _blocks_scene()
+    views = _views(truth)
+    for view in views:
+        view.max_weights[superpoints == 8] = 0.0
+    glimpsed = np.flatnonzero((superpoints == 7) | (superpoints == 8))
+    views.append(
+        ViewLift(
+            glimpsed.astype(np.int32),
+            np.full((glimpsed.size, 4), 555, np.int16),
+            np.full(glimpsed.size, 2.0, np.float32),
+            np.full(glimpsed.size, 0.06, np.float32),
+        )
+    )
+    ours = merge_levels(gaussians, superpoints, views, MergeConfig()).levels
+    others = superpoints != 8
+    for k in (1, 2, 3):  # 8 stays a region of its own; the others are the truth's regions
+        assert set(ours.labels[superpoints == 8, k]).isdisjoint(ours.labels[others, k])
+        pairs = np.unique(np.stack([ours.labels[others, k], truth[others, k - 1]], 1), axis=0)
+        assert len(pairs) == len(np.unique(pairs[:, 0])) == len(np.unique(pairs[:, 1]))
+    unsupported = merge_levels(gaussians, superpoints, views, MergeConfig(min_support=0.0))
+    joined = unsupported.levels.labels
+    assert joined[superpoints == 8, 1][0] == joined[superpoints == 7, 1][0]  # across objects
+
+
 def test_rounds_merge_regions_whose_pooled_evidence_agrees():
     # 16 superpoints in a line. Three views put all of them in one mask; a fourth sees only
     # superpoints 0 and 1, in different masks. A(0, 1) = 3 / 4 < 0.9, so 0 cannot join 1 and
@@ -351,10 +392,14 @@ def test_bad_input_is_named():
     for bad in ({"rounds": 0}, {"two_hop_weight": -1.0}, {"visibility_power": -1.0}):
         with pytest.raises(InputError, match="rounds"):
             MergeConfig(**bad)
+    for bad_support in (-1e-4, float("nan")):
+        with pytest.raises(InputError, match="min_support must be ≥ 0"):
+            MergeConfig(min_support=bad_support)
 
 
 def test_reference_config_keeps_the_authors_merging():
     reference = MergeConfig.lerf().as_reference()
     assert (reference.min_max_weight, reference.visibility_power) == (0.0, 0.0)
     assert (reference.one_hop_weight, reference.two_hop_weight, reference.rounds) == (2.0, 1.0, 1)
+    assert reference.min_support == 0.0
     assert reference.thresholds == (0.9, 0.7, 0.7)

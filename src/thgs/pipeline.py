@@ -453,7 +453,7 @@ class FieldConfig:
 def recorded_config(field: SemanticField, source: str = "field") -> FieldConfig:
     """The :class:`FieldConfig` a field was built with, from its record (the ``scene`` and
     ``text_model`` records aside), so that it can be rebuilt or its settings read with their
-    types.
+    types. A field recorded before ``merge.min_support`` existed was built without it (0).
 
     Raises:
         InputError: the record is not a valid FieldConfig (named by ``source`` and the key).
@@ -461,6 +461,9 @@ def recorded_config(field: SemanticField, source: str = "field") -> FieldConfig:
     document = {
         key: value for key, value in field.config.items() if key not in ("scene", "text_model")
     }
+    merge = document.get("merge")
+    if isinstance(merge, dict) and "min_support" not in merge:
+        document["merge"] = {**merge, "min_support": 0.0}  # built before it existed: none
     return FieldConfig.from_json(document, f"{source}: config")
 
 

@@ -164,12 +164,17 @@ def _pair_dots(units: Tensor, columns: Tensor, values: Tensor, count: int, pairs
     return out
 
 
-def pair_affinity(evidence: MaskEvidence, pairs: Tensor | np.ndarray) -> np.ndarray:
+def pair_affinity(
+    evidence: MaskEvidence, pairs: Tensor | np.ndarray, min_support: float = 0.0
+) -> np.ndarray:
     """``A(a, b) = Σ_s s_a s_b cos(h_a, h_b) / Σ_s s_a s_b`` for every pair, 0 without evidence.
 
     Args:
         evidence: the units' :class:`MaskEvidence`.
         pairs: [P, 2] int unit pairs.
+        min_support: the pair's *support* ``Σ_s s_a s_b`` (in views where both units are
+            wholly labelled) must exceed this, or the pair counts as without evidence (0): a
+            ratio of two vanishing sums says nothing, yet can be 1.
 
     Returns:
         [P] float64 affinities in [0, 1] (on the CPU: they drive the region growing there).
@@ -193,7 +198,6 @@ def pair_affinity(evidence: MaskEvidence, pairs: Tensor | np.ndarray) -> np.ndar
     count = evidence.count
     numerator = _pair_dots(evidence.units, evidence.columns, normalized, count, pairs)
     denominator = _pair_dots(group_unit, groups % evidence.sources, share, count, pairs)
-    affinity = torch.where(
-        denominator > 0, numerator / torch.where(denominator > 0, denominator, 1.0), 0.0
-    )
+    supported = denominator > min_support
+    affinity = torch.where(supported, numerator / torch.where(supported, denominator, 1.0), 0.0)
     return affinity.cpu().numpy()

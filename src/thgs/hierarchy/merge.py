@@ -55,6 +55,10 @@ log = logging.getLogger(__name__)
 MergeMode = Literal["progressive", "independent", "instance"]
 
 
+MIN_SUPPORT = 1e-4
+"""Default :attr:`MergeConfig.min_support`."""
+
+
 @dataclass(frozen=True)
 class MergeConfig:
     """How superpoints merge into levels 1–3. Defaults: the reference's LERF numbers with our
@@ -88,6 +92,10 @@ class MergeConfig:
             reference 1).
         rounds: each pass is repeated on its own regions until a round merges nothing, at most
             this many times in all (ours 10; the reference 1).
+        min_support: a pair of units whose affinity rests on less evidence than this (its
+            support ``Σ_v s_a s_b``, :func:`thgs.hierarchy.pair_affinity`) has none, and does
+            not merge (ours MIN_SUPPORT; the reference 0). Without it a unit glimpsed in a view
+            or two with vanishing weight takes affinity 1 with whatever mask covered it there.
     """
 
     thresholds: tuple[float, float, float] = (0.9, 0.7, 0.7)
@@ -102,6 +110,7 @@ class MergeConfig:
     visibility_power: float = 2.0
     two_hop_weight: float = 0.0
     rounds: int = 10
+    min_support: float = MIN_SUPPORT
 
     def __post_init__(self) -> None:
         if len(self.thresholds) != 3 or not all(np.isfinite(t) for t in self.thresholds):
@@ -116,6 +125,8 @@ class MergeConfig:
             raise InputError(
                 "MergeConfig", "need two_hop_weight ≥ 0, visibility_power ≥ 0 and rounds ≥ 1"
             )
+        if not (np.isfinite(self.min_support) and self.min_support >= 0):
+            raise InputError("MergeConfig", f"min_support must be ≥ 0, got {self.min_support}")
         if self.mode not in ("progressive", "independent", "instance"):
             raise InputError(
                 "MergeConfig",
@@ -137,7 +148,14 @@ class MergeConfig:
         """The same numbers with the authors' behaviour where ours differs: every label votes
         with weight 1 (no visibility threshold or weighting), 2-hop members count 1 : 2, one
         round per pass."""
-        return replace(self, min_max_weight=0.0, visibility_power=0.0, two_hop_weight=1.0, rounds=1)
+        return replace(
+            self,
+            min_max_weight=0.0,
+            visibility_power=0.0,
+            two_hop_weight=1.0,
+            rounds=1,
+            min_support=0.0,
+        )
 
 
 @dataclass(frozen=True, eq=False)
@@ -230,7 +248,7 @@ def _grow_round(graph: UnitGraph, evidence: MaskEvidence, threshold: float, conf
     if config.two_hop_weight == 0:  # 2-hop members do not count: no affinity needed for them
         touching = graph.hops == 1
         graph = UnitGraph(graph.one_hop, graph.pairs[touching], graph.hops[touching])
-    affinity = pair_affinity(evidence, graph.pairs)
+    affinity = pair_affinity(evidence, graph.pairs, config.min_support)
     indptr2, indices2, hops2, affinity2 = _both_directions(graph, affinity)
     sizes = evidence.sizes.cpu().numpy()
     one = graph.one_hop
