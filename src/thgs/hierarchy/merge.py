@@ -62,8 +62,8 @@ MIN_SUPPORT = 1e-4
 @dataclass(frozen=True)
 class MergeConfig:
     """How superpoints merge into levels 1–3. Defaults: the reference's LERF numbers with our
-    fixes (``min_max_weight``, ``visibility_power``, ``two_hop_weight``, ``rounds``);
-    :meth:`as_reference` gives the authors' behaviour.
+    fixes (``min_max_weight``, ``visibility_power``, ``two_hop_weight``, ``rounds``,
+    ``min_support``); :meth:`as_reference` gives the authors' behaviour.
 
     Attributes:
         thresholds: affinity a unit needs to join a region, per pass (s, m, l): (0.9, 0.7, 0.7).
@@ -147,7 +147,7 @@ class MergeConfig:
     def as_reference(self) -> MergeConfig:
         """The same numbers with the authors' behaviour where ours differs: every label votes
         with weight 1 (no visibility threshold or weighting), 2-hop members count 1 : 2, one
-        round per pass."""
+        round per pass, any support counts."""
         return replace(
             self,
             min_max_weight=0.0,
