@@ -94,8 +94,9 @@ class MergeConfig:
             this many times in all (ours 10; the reference 1).
         min_support: a pair of units whose affinity rests on less evidence than this (its
             support ``Σ_v s_a s_b``, :func:`thgs.hierarchy.pair_affinity`) has none, and does
-            not merge (ours MIN_SUPPORT; the reference 0). Without it a unit glimpsed in a view
-            or two with vanishing weight takes affinity 1 with whatever mask covered it there.
+            not merge (ours 1e-4, :data:`MIN_SUPPORT`; the reference 0). Without it a unit
+            glimpsed in a view or two with vanishing weight takes affinity 1 with whatever mask
+            covered it there.
     """
 
     thresholds: tuple[float, float, float] = (0.9, 0.7, 0.7)
