@@ -78,20 +78,21 @@ def cell(out: Path, seed: int, kind: str, severity: float, mix: float) -> dict:
     dataset, field_path = scenario(out, seed, kind, severity, mix)
     field, scene = load_field(field_path), load_scene(dataset)
     engine = FieldQuery(field, load_text_encoder(field.space))
+    raster = lifted_raster(field)
     report = evaluate_dataset(
         find_ground_truth(dataset),
         engine,
         scene.gaussians,
         scene.cameras,
         protocols=("lerf", "3dovs"),
-        raster=lifted_raster(field),
+        raster=raster,
     )
     ceiling = evaluate_3dovs(
         GroundTruthSelection(dataset),  # type: ignore[arg-type]
         scene.gaussians,
         scene.cameras,
         read_3dovs_segmentations(dataset),
-        raster=lifted_raster(field),
+        raster=raster,
     )
     named = sorted({i["prompt"] for r in report.results if r.protocol == "lerf" for i in r.items})
     return {
