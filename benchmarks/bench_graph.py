@@ -93,7 +93,7 @@ def synthetic_views(
     return out
 
 
-def run_one(n: int, views: int, visibility: float) -> dict:
+def run_one(n: int, views: int, visibility: float, alternatives: int) -> dict:
     gaussians, segments = surface_scene(n)
     lifts = synthetic_views(segments, views, visibility)
     tiny = knn_graph(gaussians.select(np.arange(1000)))
@@ -109,12 +109,14 @@ def run_one(n: int, views: int, visibility: float) -> dict:
     distances = reweight(graph, pos, neg, ReweightConfig())
     timings["reweight_s"] = time.perf_counter() - start
     start = time.perf_counter()
-    labels = partition(gaussians, graph, distances, PartitionConfig())
+    config = PartitionConfig(split_alternatives=alternatives)
+    labels = partition(gaussians, graph, distances, config)
     timings["partition_s"] = time.perf_counter() - start
     return {
         "gaussians": n,
         "views": views,
         "visibility": visibility,
+        "split_alternatives": alternatives,
         "threads": torch.get_num_threads(),
         **{key: round(value, 2) for key, value in timings.items()},
         "total_s": round(sum(timings.values()), 2),
@@ -130,10 +132,17 @@ def main() -> None:
     parser.add_argument("--gaussians", type=int, nargs="*", default=[100_000, 1_000_000])
     parser.add_argument("--views", type=int, default=200)
     parser.add_argument("--visibility", type=float, default=0.2)
+    parser.add_argument(
+        "--split-alternatives",
+        type=int,
+        default=PartitionConfig().split_alternatives,
+        help="cut pursuit's K (the reference's is 2)",
+    )
     parser.add_argument("--one", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.one:
-        print(json.dumps(run_one(args.gaussians[0], args.views, args.visibility)))
+        result = run_one(args.gaussians[0], args.views, args.visibility, args.split_alternatives)
+        print(json.dumps(result))
         return
     for n in args.gaussians:
         command = [
@@ -146,6 +155,8 @@ def main() -> None:
             str(args.views),
             "--visibility",
             str(args.visibility),
+            "--split-alternatives",
+            str(args.split_alternatives),
         ]
         result = subprocess.run(command, capture_output=True, text=True, check=True)
         print(result.stdout.strip(), flush=True)

@@ -18,6 +18,7 @@ from test_cli import run
 from thgs.errors import InputError
 from thgs.field import load_field
 from thgs.field_scene import open_field_scene
+from thgs.graph import PartitionConfig
 from thgs.guidance import guidance_folder, guidance_space
 from thgs.hierarchy import MergeConfig
 from thgs.pipeline import (
@@ -82,7 +83,7 @@ def test_every_setting_round_trips_and_is_reachable_by_set():
         if name.split(".")[-1] not in ("backend", "precision"):
             assert FieldConfig.from_json(config.to_json()) == config, name
         names.append(name)
-    assert len(names) == 60  # every setting of every stage (update when one is added)
+    assert len(names) == 62  # every setting of every stage (update when one is added)
 
 
 def test_set_takes_plain_text_for_choices():
@@ -165,6 +166,21 @@ def test_a_field_recorded_before_min_support_was_built_without_it(small_field):
     merge = {k: v for k, v in field.config["merge"].items() if k != "min_support"}
     older = dataclasses.replace(field, config={**field.config, "merge": merge})
     assert recorded_config(older).merge == dataclasses.replace(recorded, min_support=0.0)
+
+
+def test_a_field_recorded_before_split_alternatives_was_partitioned_with_two(small_field):
+    field = load_field(small_field)
+    recorded = recorded_config(field).superpoints.partition
+    assert recorded.split_alternatives == PartitionConfig().split_alternatives == 6
+    superpoints = field.config["superpoints"]
+    partition = {k: v for k, v in superpoints["partition"].items() if k != "split_alternatives"}
+    older = dataclasses.replace(
+        field, config={**field.config, "superpoints": {**superpoints, "partition": partition}}
+    )
+    assert recorded_config(older).superpoints.partition == dataclasses.replace(
+        recorded, split_alternatives=2
+    )
+    assert "split_alternatives" in field.config["superpoints"]["partition"]  # record untouched
 
 
 def test_the_scene_is_found_relative_to_the_field(small_dataset, small_field, tmp_path):

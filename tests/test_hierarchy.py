@@ -17,9 +17,11 @@ from thgs.hierarchy import (
     mask_evidence,
     merge_levels,
     pair_affinity,
+    split_incoherent,
     unit_graph,
 )
 from thgs.hierarchy import affinity as affinity_module
+from thgs.hierarchy.coherence import _weakest_cut
 from thgs.hierarchy.merge import _grow
 from thgs.lift import ViewLift
 
@@ -369,6 +371,64 @@ def test_rounds_merge_regions_whose_pooled_evidence_agrees():
     np.testing.assert_array_equal(single.labels[:, 1], (superpoints > 0).astype(np.int32))
 
 
+def test_a_confused_part_does_not_join_two_objects():
+    # the second part of object 0 (superpoints 4–7) lies against object 1; the object masks
+    # cover its far half (6, 7) with object 1's mask in every view. Its histogram is then
+    # (1/2, 1/2): A = 0.71 ≥ 0.7 with both neighbouring parts, and growing joins everything
+    # through it. Pooled, object 0's side ((3/4, 1/4) over 400 Gaussians) and object 1
+    # ((0, 1)) have A = 0.32: the region is cut there, and the truth comes back.
+    gaussians, superpoints, truth = _blocks_scene()
+    views = _views(truth)
+    for view in views:
+        view.labels[(superpoints == 6) | (superpoints == 7), 3] = 201  # object 1's mask
+    grown = merge_levels(gaussians, superpoints, views, MergeConfig(split_incoherent=False))
+    assert grown.levels.counts == (16, 8, 4, 1)
+    ours = merge_levels(gaussians, superpoints, views, MergeConfig()).levels
+    assert ours.counts == (16, 8, 4, 2)
+    for k in (1, 2, 3):
+        np.testing.assert_array_equal(ours.labels[:, k], truth[:, k - 1])
+
+
+def test_a_split_needs_evidence_that_the_sides_disagree():
+    # two touching units of 10 Gaussians in one region. Views seen by both: one puts them in one
+    # mask, one in two masks, so A = 1/2: cut at threshold 0.9, kept whole at 0.4. Views that
+    # each see one unit only give no support: the region stays whole at any threshold.
+    units = np.repeat(np.arange(2), 10)
+    neighbors = np.stack([np.arange(20), np.clip(np.arange(20) + 1, 0, 19)], axis=1)
+    graph = unit_graph(units, neighbors, 2)
+    everyone = _tensor(np.arange(20))
+    agree = (everyone, _tensor(np.zeros(20, dtype=np.int64)))
+    disagree = (everyone, _tensor(units.astype(np.int64)))
+    evidence = mask_evidence(_tensor(units), 2, [agree, disagree])
+    together = np.zeros(2, dtype=np.int64)
+    np.testing.assert_array_equal(split_incoherent(together, graph, evidence, 0.4), [0, 0])
+    np.testing.assert_array_equal(split_incoherent(together, graph, evidence, 0.9), [0, 1])
+    apart = [
+        (_tensor(np.flatnonzero(units == u)), _tensor(np.full(10, u, np.int64))) for u in (0, 1)
+    ]
+    unseen_together = mask_evidence(_tensor(units), 2, apart)
+    np.testing.assert_array_equal(split_incoherent(together, graph, unseen_together, 0.9), [0, 0])
+    # with more support required than the two views give (1 + 1), the cut is not kept
+    np.testing.assert_array_equal(split_incoherent(together, graph, evidence, 0.9, 2.5), [0, 0])
+
+
+def test_weakest_cut_by_hand():
+    # a path 0 – 1 – 2 – 3 with a weak middle link: the cut separates {0, 1} from {2, 3}
+    weights = np.zeros((4, 4))
+    for a, b, w in ((0, 1, 1.0), (1, 2, 0.1), (2, 3, 1.0)):
+        weights[a, b] = weights[b, a] = w
+    side = _weakest_cut(weights)
+    assert side[0] == side[1] != side[2] == side[3]
+    # two triangles joined by one edge: the cut is that edge
+    weights = np.zeros((6, 6))
+    for a, b in itertools.chain(
+        itertools.combinations((0, 1, 2), 2), itertools.combinations((3, 4, 5), 2), [(2, 3)]
+    ):
+        weights[a, b] = weights[b, a] = 1.0
+    side = _weakest_cut(weights)
+    assert len(set(side[:3])) == len(set(side[3:])) == 1 and side[0] != side[3]
+
+
 def test_small_regions_join_their_most_similar_neighbour():
     gaussians, superpoints, truth = _blocks_scene()
     truth = truth.copy()
@@ -401,5 +461,5 @@ def test_reference_config_keeps_the_authors_merging():
     reference = MergeConfig.lerf().as_reference()
     assert (reference.min_max_weight, reference.visibility_power) == (0.0, 0.0)
     assert (reference.one_hop_weight, reference.two_hop_weight, reference.rounds) == (2.0, 1.0, 1)
-    assert reference.min_support == 0.0
+    assert reference.min_support == 0.0 and not reference.split_incoherent
     assert reference.thresholds == (0.9, 0.7, 0.7)

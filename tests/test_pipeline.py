@@ -197,5 +197,7 @@ def test_presets_and_reference_switch():
     assert dovs.lift.cosine_threshold == 0.5 and lerf.lift.cosine_threshold == 0.85
     reference = lerf.as_reference()
     assert reference.reweight == ReweightConfig.reference()
-    assert reference.partition == replace(lerf.partition, weight_scale="reweighted")
+    assert reference.partition == replace(
+        lerf.partition, weight_scale="reweighted", split_alternatives=2
+    )
     assert reference.lift == lerf.lift and reference.graph == lerf.graph

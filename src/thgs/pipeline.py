@@ -9,6 +9,7 @@ features, and returns the :class:`thgs.field.SemanticField`. Each stage keeps it
 
 from __future__ import annotations
 
+import copy
 import json
 import logging
 import os
@@ -112,13 +113,14 @@ class SuperpointConfig:
 
     def as_reference(self) -> SuperpointConfig:
         """The same numbers with the authors' behaviour where ours differs: absolute vote
-        offsets (0.1 / 0.02 scene units²) and edge weights against the reweighted mean."""
+        offsets (0.1 / 0.02 scene units²), edge weights against the reweighted mean, the
+        solver's 2 split alternatives."""
         return replace(
             self,
             reweight=replace(
                 self.reweight, mode="absolute", negative_offset=0.1, positive_offset=0.02
             ),
-            partition=replace(self.partition, weight_scale="reweighted"),
+            partition=replace(self.partition, weight_scale="reweighted", split_alternatives=2),
         )
 
 
@@ -453,18 +455,31 @@ class FieldConfig:
 def recorded_config(field: SemanticField, source: str = "field") -> FieldConfig:
     """The :class:`FieldConfig` a field was built with, from its record (the ``scene`` and
     ``text_model`` records aside), so that it can be rebuilt or its settings read with their
-    types. A field recorded before ``merge.min_support`` existed was built without it (0).
+    types. A setting recorded by no field built before it existed takes the value those builds
+    used (:data:`_BEFORE_RECORDED`).
 
     Raises:
         InputError: the record is not a valid FieldConfig (named by ``source`` and the key).
     """
-    document = {
-        key: value for key, value in field.config.items() if key not in ("scene", "text_model")
-    }
-    merge = document.get("merge")
-    if isinstance(merge, dict) and "min_support" not in merge:
-        document["merge"] = {**merge, "min_support": 0.0}  # built before it existed: none
+    document = copy.deepcopy(
+        {key: value for key, value in field.config.items() if key not in ("scene", "text_model")}
+    )
+    for path, value in _BEFORE_RECORDED.items():
+        *stages, name = path
+        node = document
+        for stage in stages:
+            node = node.get(stage) if isinstance(node, dict) else None
+        if isinstance(node, dict) and name not in node:
+            node[name] = value
     return FieldConfig.from_json(document, f"{source}: config")
+
+
+_BEFORE_RECORDED = {
+    ("merge", "min_support"): 0.0,
+    ("merge", "split_incoherent"): False,
+    ("superpoints", "partition", "split_alternatives"): 2,
+}
+"""Settings added after fields were first recorded, with the value every earlier build used."""
 
 
 def read_field_config(path: str | os.PathLike[str]) -> FieldConfig:

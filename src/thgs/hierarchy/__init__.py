@@ -9,6 +9,7 @@ levels = group_repeated_parts(gaussians, merged.levels, part_features)   # a tab
 
 from thgs.hierarchy.adjacency import UnitGraph, coarsened_graph, gaussian_neighbors, unit_graph
 from thgs.hierarchy.affinity import MaskEvidence, Source, mask_evidence, pair_affinity
+from thgs.hierarchy.coherence import split_incoherent
 from thgs.hierarchy.levels import LEVEL_NAMES, RegionLevels
 from thgs.hierarchy.merge import MergeConfig, MergeResult, merge_levels, renumber_by_units
 from thgs.hierarchy.repeats import RepeatConfig, group_repeated_parts, repeated_part_pairs
@@ -30,5 +31,6 @@ __all__ = [
     "pair_affinity",
     "renumber_by_units",
     "repeated_part_pairs",
+    "split_incoherent",
     "unit_graph",
 ]

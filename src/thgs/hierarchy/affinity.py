@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["MaskEvidence", "Source", "mask_evidence", "pair_affinity"]
+__all__ = ["MaskEvidence", "Source", "affinity_and_support", "mask_evidence", "pair_affinity"]
 
 Source = tuple[Tensor, ...]
 """One view's labels at one level: ([n] Gaussian indices, [n] mask ids, −1 = none) and optionally
@@ -179,10 +179,19 @@ def pair_affinity(
     Returns:
         [P] float64 affinities in [0, 1] (on the CPU: they drive the region growing there).
     """
+    affinity, support = affinity_and_support(evidence, pairs)
+    return np.where(support > min_support, affinity, 0.0)
+
+
+def affinity_and_support(
+    evidence: MaskEvidence, pairs: Tensor | np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """[P] float64 affinities (as :func:`pair_affinity` with ``min_support`` 0) and [P] float64
+    supports ``Σ_s s_a s_b`` of the pairs, on the CPU."""
     device = evidence.units.device
     pairs = torch.as_tensor(np.asarray(pairs), dtype=torch.int64, device=device).reshape(-1, 2)
     if len(evidence.units) == 0:
-        return np.zeros(len(pairs))
+        return np.zeros(len(pairs)), np.zeros(len(pairs))
     # per (unit, source): the histogram's sum and norm
     source = evidence.columns // evidence.masks
     groups, group = torch.unique_consecutive(
@@ -198,6 +207,6 @@ def pair_affinity(
     count = evidence.count
     numerator = _pair_dots(evidence.units, evidence.columns, normalized, count, pairs)
     denominator = _pair_dots(group_unit, groups % evidence.sources, share, count, pairs)
-    supported = denominator > min_support
+    supported = denominator > 0
     affinity = torch.where(supported, numerator / torch.where(supported, denominator, 1.0), 0.0)
-    return affinity.cpu().numpy()
+    return affinity.cpu().numpy(), denominator.cpu().numpy()

@@ -22,6 +22,9 @@ labels of SAM level s, m, l lifted onto the Gaussians:
   histograms pooled) until a round merges nothing or ``rounds`` (10) is reached: growing is
   greedy and order-dependent, and two touching regions whose pooled evidence passes the
   threshold stay apart after one round. The reference runs one round.
+- **Incoherent regions (ours).** After the last pass's rounds, a region whose two sides (cut
+  along its weakest link) agree, pooled, less than the threshold is cut, again and again
+  (:mod:`thgs.hierarchy.coherence`); the reference keeps what growing made.
 - **Small regions.** After the last pass, a level-3 region of at most ``max_absorbed_units``
   level-2 units and fewer than ``min_region_gaussians`` Gaussians joins the touching region (not
   itself small) of highest level-3 affinity. One with no such neighbour stays its own region:
@@ -44,6 +47,7 @@ import torch
 from thgs.errors import InputError
 from thgs.hierarchy.adjacency import UnitGraph, coarsened_graph, gaussian_neighbors, unit_graph
 from thgs.hierarchy.affinity import MaskEvidence, Source, mask_evidence, pair_affinity
+from thgs.hierarchy.coherence import split_incoherent
 from thgs.hierarchy.levels import RegionLevels
 from thgs.lift import ViewLift
 from thgs.scene.gaussians import Gaussians
@@ -97,6 +101,11 @@ class MergeConfig:
             not merge (ours 1e-4, :data:`MIN_SUPPORT`; the reference 0). Without it a unit
             glimpsed in a view or two with vanishing weight takes affinity 1 with whatever mask
             covered it there.
+        split_incoherent: after the last pass (objects), cut each region along its weakest
+            link while the two sides, pooled, agree less than the pass's threshold
+            (:func:`thgs.hierarchy.split_incoherent`; ours True, the reference False). Growing
+            compares a unit only with the members it touches, so one unit that the masks
+            confuse can carry two objects into one region.
     """
 
     thresholds: tuple[float, float, float] = (0.9, 0.7, 0.7)
@@ -112,6 +121,7 @@ class MergeConfig:
     two_hop_weight: float = 0.0
     rounds: int = 10
     min_support: float = MIN_SUPPORT
+    split_incoherent: bool = True
 
     def __post_init__(self) -> None:
         if len(self.thresholds) != 3 or not all(np.isfinite(t) for t in self.thresholds):
@@ -148,7 +158,7 @@ class MergeConfig:
     def as_reference(self) -> MergeConfig:
         """The same numbers with the authors' behaviour where ours differs: every label votes
         with weight 1 (no visibility threshold or weighting), 2-hop members count 1 : 2, one
-        round per pass, any support counts."""
+        round per pass, any support counts, no split of incoherent regions."""
         return replace(
             self,
             min_max_weight=0.0,
@@ -156,6 +166,7 @@ class MergeConfig:
             two_hop_weight=1.0,
             rounds=1,
             min_support=0.0,
+            split_incoherent=False,
         )
 
 
@@ -274,14 +285,17 @@ def _merge_pass(
     threshold: float,
     config: MergeConfig,
     device: torch.device,
+    split: bool = False,
 ) -> np.ndarray:
     """[N] int32 region of every Gaussian after one pass over ``units`` [N] (0 … U − 1):
     ``config.rounds`` rounds of growing at most, each on the previous round's regions (their
-    adjacency and evidence pooled from the units'), stopping when a round merges nothing;
-    numbered in order of their smallest unit."""
+    adjacency and evidence pooled from the units'), stopping when a round merges nothing; with
+    ``split``, incoherent regions are then cut (:func:`split_incoherent`); numbered in order of
+    their smallest unit."""
     count = int(units.max()) + 1
     graph = unit_graph(units, neighbors, count)
     evidence = mask_evidence(torch.from_numpy(units).to(device), count, sources)
+    units_graph, units_evidence = graph, evidence
     region_of_unit = np.arange(count)
     for _ in range(config.rounds):
         grown = _grow_round(graph, evidence, threshold, config)  # per current region
@@ -295,6 +309,10 @@ def _merge_pass(
             break
         graph = coarsened_graph(graph, new_of_current, regions)
         evidence = evidence.pooled(torch.from_numpy(new_of_current), regions)
+    if split:
+        region_of_unit = split_incoherent(
+            region_of_unit, units_graph, units_evidence, threshold, config.min_support
+        )
     return region_of_unit[units].astype(np.int32)
 
 
@@ -411,7 +429,13 @@ def merge_levels(
     if config.mode == "instance":
         started = time.perf_counter()
         regions = _merge_pass(
-            base, neighbors, _sources(lifted, 3, config), config.thresholds[2], config, device
+            base,
+            neighbors,
+            _sources(lifted, 3, config),
+            config.thresholds[2],
+            config,
+            device,
+            split=config.split_incoherent,
         )
         seconds["level 3"] = time.perf_counter() - started
         levels += [regions, regions, regions]
@@ -422,8 +446,10 @@ def merge_levels(
             if k == 1 and config.seg_enhance:
                 sources = chain(sources, _sources(lifted, 2, config, config.enhance_stride))
             units = base if config.mode == "independent" else levels[-1].astype(np.int64)
+            split = k == 3 and config.split_incoherent
+            threshold = config.thresholds[k - 1]
             levels.append(
-                _merge_pass(units, neighbors, sources, config.thresholds[k - 1], config, device)
+                _merge_pass(units, neighbors, sources, threshold, config, device, split=split)
             )
             seconds[f"level {k}"] = time.perf_counter() - started
     if config.min_region_gaussians > 0 and config.mode != "independent":
