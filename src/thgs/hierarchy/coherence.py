@@ -76,10 +76,11 @@ def split_incoherent(
     while pending:
         members = pending.pop()
         if members.size > MAX_SPLIT_UNITS:
-            log.info("region of %d units not checked for a split (> %d)", members.size,
-                     MAX_SPLIT_UNITS)  # fmt: skip
+            log.info("a region of %d units is not checked for a split", members.size)
             continue
         local = weights[members][:, members]
+        if (local.getnnz(axis=1) == 0).any():  # not connected: growing never makes one
+            continue
         side = _weakest_cut(local.toarray())
         if not _disagree(evidence, members, side, count, threshold, min_support):
             continue
