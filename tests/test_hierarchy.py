@@ -21,6 +21,7 @@ from thgs.hierarchy import (
     unit_graph,
 )
 from thgs.hierarchy import affinity as affinity_module
+from thgs.hierarchy.affinity import affinity_and_support
 from thgs.hierarchy.coherence import _weakest_cut
 from thgs.hierarchy.merge import _grow
 from thgs.lift import ViewLift
@@ -179,6 +180,29 @@ def test_affinity_hand_case():
     view_a = (*view_a, np.ones(4))
     got = _affinity(units, 2, np.array([[0, 1]]), [view_a, view_b])
     np.testing.assert_allclose(got, [1 / 1.005])
+
+
+def test_evidence_of_some_units_pools_like_all_of_them():
+    # the affinity of two groups of units is the same from the evidence of those units alone
+    rng = np.random.default_rng(4)
+    units = rng.integers(0, 12, 300)
+    sources = [
+        (np.arange(300), rng.integers(-1, 5, 300), rng.uniform(0.1, 1.0, 300)) for _ in range(6)
+    ]
+    evidence = mask_evidence(_tensor(units), 12, _tensors(sources))
+    members = np.array([7, 2, 9, 4, 11])
+    side = np.array([0, 1, 0, 1, 1])
+    groups = np.full(12, 2)
+    groups[members] = side
+    everything = evidence.pooled(_tensor(groups), 3)
+    alone = evidence.of_units(_tensor(members)).pooled(_tensor(side), 2)
+    np.testing.assert_allclose(alone.sizes.numpy(), everything.sizes.numpy()[:2])
+    for got, want in zip(
+        affinity_and_support(alone, np.array([[0, 1]])),
+        affinity_and_support(everything, np.array([[0, 1]])),
+        strict=True,
+    ):
+        np.testing.assert_allclose(got, want)
 
 
 def test_affinity_without_support_is_none():

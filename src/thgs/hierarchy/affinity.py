@@ -70,6 +70,25 @@ class MaskEvidence:
         )
         return MaskEvidence(units, columns, weights, sizes, self.masks, self.sources)
 
+    def of_units(self, units: Tensor) -> MaskEvidence:
+        """The evidence of ``units`` [M] int64 (distinct ids) alone, renumbered 0 … M − 1 in
+        that order; reads only their entries."""
+        units = units.to(self.units.device)
+        bounds = torch.searchsorted(self.units, torch.stack([units, units + 1]))
+        lengths = bounds[1] - bounds[0]
+        offsets = torch.cumsum(lengths, 0) - lengths
+        entries = torch.arange(int(lengths.sum()), device=units.device)
+        entries += torch.repeat_interleave(bounds[0] - offsets, lengths)
+        rows = torch.repeat_interleave(torch.arange(len(units), device=units.device), lengths)
+        return MaskEvidence(
+            rows,
+            self.columns[entries],
+            self.weights[entries],
+            self.sizes[units],
+            self.masks,
+            self.sources,
+        )
+
 
 def _summed(rows: Tensor, columns: Tensor, weights: Tensor, width: int) -> tuple[Tensor, ...]:
     """Duplicate (row, column) entries summed, sorted by (row, column)."""

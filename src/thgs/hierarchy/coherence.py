@@ -25,6 +25,7 @@ from scipy.sparse.csgraph import connected_components
 
 from thgs.hierarchy.adjacency import UnitGraph
 from thgs.hierarchy.affinity import MaskEvidence, affinity_and_support, pair_affinity
+from thgs.hierarchy.levels import renumber_by_units
 
 __all__ = ["split_incoherent"]
 
@@ -71,7 +72,7 @@ def split_incoherent(
     starts = np.flatnonzero(np.r_[True, np.diff(regions[order]) != 0])
     pending = [members for members in np.split(order, starts[1:]) if members.size > 1]
     result = regions.copy()
-    fresh = int(regions.max()) + 1 if count else 0
+    fresh = int(regions.max()) + 1
     splits = 0
     while pending:
         members = pending.pop()
@@ -82,7 +83,7 @@ def split_incoherent(
         if (local.getnnz(axis=1) == 0).any():  # not connected: growing never makes one
             continue
         side = _weakest_cut(local.toarray())
-        if not _disagree(evidence, members, side, count, threshold, min_support):
+        if not _disagree(evidence, members, side, threshold, min_support):
             continue
         splits += 1
         for half in (np.flatnonzero(side), np.flatnonzero(~side)):
@@ -96,11 +97,7 @@ def split_incoherent(
     if splits:
         log.info("split %d incoherent regions", splits)
     _, dense = np.unique(result, return_inverse=True)
-    first = np.full(dense.max() + 1 if count else 0, count, dtype=np.int64)
-    np.minimum.at(first, dense, np.arange(count))
-    rank = np.empty_like(first)
-    rank[np.argsort(first, kind="stable")] = np.arange(first.size)
-    return rank[dense]
+    return renumber_by_units(dense, np.arange(count)).astype(np.int64)
 
 
 def _weakest_cut(weights: np.ndarray) -> np.ndarray:
@@ -125,14 +122,12 @@ def _disagree(
     evidence: MaskEvidence,
     members: np.ndarray,
     side: np.ndarray,
-    count: int,
     threshold: float,
     min_support: float,
 ) -> bool:
     """Whether the two sides of ``members`` (``side`` True / False), pooled, have an affinity
     below ``threshold`` on support above ``min_support``."""
-    groups = np.full(count, 2, dtype=np.int64)
-    groups[members] = np.where(side, 0, 1)
-    pooled = evidence.pooled(torch.from_numpy(groups), 3)
+    groups = torch.from_numpy(np.where(side, 0, 1))
+    pooled = evidence.of_units(torch.from_numpy(members)).pooled(groups, 2)
     affinity, support = affinity_and_support(pooled, np.array([[0, 1]]))
     return bool(support[0] > min_support and affinity[0] < threshold)

@@ -25,7 +25,7 @@ import numpy as np
 
 from thgs.errors import InputError
 
-__all__ = ["LEVEL_NAMES", "RegionLevels"]
+__all__ = ["LEVEL_NAMES", "RegionLevels", "renumber_by_units"]
 
 LEVEL_NAMES = ("superpoint", "subpart", "part", "object")
 """The levels' names, finest first: column k of :attr:`RegionLevels.labels` is level k."""
@@ -308,3 +308,21 @@ def _describe(value: object) -> str:
     if isinstance(value, np.ndarray):
         return f"{value.dtype} array of shape {list(value.shape)}"
     return type(value).__name__
+
+
+def renumber_by_units(regions: np.ndarray, units: np.ndarray) -> np.ndarray:
+    """Region ids renumbered 0 … R − 1 in order of their smallest unit id (the growing order).
+
+    Args:
+        regions: [N] region id (0 … R − 1, every id used) of each Gaussian.
+        units: [N] the unit (superpoint or lower-level region) id of each Gaussian.
+
+    Returns:
+        [N] int32 renumbered region ids.
+    """
+    count = int(regions.max()) + 1
+    first_unit = np.full(count, np.iinfo(np.int64).max)
+    np.minimum.at(first_unit, regions, units)
+    rank = np.empty(count, dtype=np.int64)
+    rank[np.argsort(first_unit, kind="stable")] = np.arange(count)
+    return rank[regions].astype(np.int32)

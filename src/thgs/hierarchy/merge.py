@@ -48,7 +48,7 @@ from thgs.errors import InputError
 from thgs.hierarchy.adjacency import UnitGraph, coarsened_graph, gaussian_neighbors, unit_graph
 from thgs.hierarchy.affinity import MaskEvidence, Source, mask_evidence, pair_affinity
 from thgs.hierarchy.coherence import split_incoherent
-from thgs.hierarchy.levels import RegionLevels
+from thgs.hierarchy.levels import RegionLevels, renumber_by_units
 from thgs.lift import ViewLift
 from thgs.scene.gaussians import Gaussians
 
@@ -357,24 +357,6 @@ def _absorb(
         int(small.sum() - first.sum()),
     )
     return target[regions]
-
-
-def renumber_by_units(regions: np.ndarray, units: np.ndarray) -> np.ndarray:
-    """Region ids renumbered 0 … R − 1 in order of their smallest unit id (the growing order).
-
-    Args:
-        regions: [N] region id (0 … R − 1, every id used) of each Gaussian.
-        units: [N] the unit (superpoint or lower-level region) id of each Gaussian.
-
-    Returns:
-        [N] int32 renumbered region ids.
-    """
-    count = int(regions.max()) + 1
-    first_unit = np.full(count, np.iinfo(np.int64).max)
-    np.minimum.at(first_unit, regions, units)
-    rank = np.empty(count, dtype=np.int64)
-    rank[np.argsort(first_unit, kind="stable")] = np.arange(count)
-    return rank[regions].astype(np.int32)
 
 
 def merge_levels(
