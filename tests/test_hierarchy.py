@@ -399,14 +399,37 @@ def test_a_confused_part_does_not_join_two_objects():
     # the second part of object 0 (superpoints 4–7) lies against object 1; the object masks
     # cover its far half (6, 7) with object 1's mask in every view. Its histogram is then
     # (1/2, 1/2): A = 0.71 ≥ 0.7 with both neighbouring parts, and growing joins everything
-    # through it. Pooled, object 0's side ((3/4, 1/4) over 400 Gaussians) and object 1
-    # ((0, 1)) have A = 0.32: the region is cut there, and the truth comes back.
+    # through it. The check cuts the object between its sub-parts where the object masks
+    # disagree: 0–5 ((1, 0)) against 6–15 ((0, 1)), A = 0, and the part 4–7 with it; the
+    # object masks, not the part masks, decide what an object is.
     gaussians, superpoints, truth = _blocks_scene()
     views = _views(truth)
     for view in views:
         view.labels[(superpoints == 6) | (superpoints == 7), 3] = 201  # object 1's mask
     grown = merge_levels(gaussians, superpoints, views, MergeConfig(split_incoherent=False))
     assert grown.levels.counts == (16, 8, 4, 1)
+    ours = merge_levels(gaussians, superpoints, views, MergeConfig()).levels
+    assert ours.counts == (16, 8, 5, 2)
+    np.testing.assert_array_equal(ours.labels[:, 3], (superpoints >= 6).astype(np.int32))
+    expected_parts = np.select([superpoints < 4, superpoints < 6, superpoints < 8], [0, 1, 2], 3)
+    expected_parts[superpoints >= 12] = 4
+    np.testing.assert_array_equal(ours.labels[:, 2], expected_parts)
+    np.testing.assert_array_equal(ours.labels[:, 1], truth[:, 0])
+
+
+def test_a_part_that_took_another_objects_part_is_cut_with_the_object():
+    # the part masks put object 1's first part (superpoints 8–11) into object 0's last part in
+    # every view, so level 2 makes one part of superpoints 4–11. Its object histogram is
+    # (1/2, 1/2): A = 0.71 ≥ 0.7 with both other parts, and growing objects on parts joins
+    # everything. On parts, no cut of the object finds the truth (4–11 is one unit); on
+    # sub-parts the weakest link is between 7 and 8 (object masks 200 | 201, A = 0): the
+    # object is cut there, the part 4–11 with it, and every level is the truth again.
+    gaussians, superpoints, truth = _blocks_scene()
+    views = _views(truth)
+    for view in views:
+        view.labels[(superpoints >= 8) & (superpoints < 12), 2] = 101  # part 1's mask
+    unchecked = merge_levels(gaussians, superpoints, views, MergeConfig(split_incoherent=False))
+    assert unchecked.levels.counts == (16, 8, 3, 1)
     ours = merge_levels(gaussians, superpoints, views, MergeConfig()).levels
     assert ours.counts == (16, 8, 4, 2)
     for k in (1, 2, 3):

@@ -12,6 +12,9 @@ The weakest link is the normalized spectral cut (Shi and Malik) of the region's 
 where they touch and weighted by their affinity: the Fiedler vector of the normalized Laplacian
 orders the units, and of the cuts along that order the one of lowest conductance (cut weight
 over the smaller side's volume) is taken.
+
+After merging, objects are checked on sub-part units (:func:`thgs.hierarchy.merge_levels`): a
+part that took in a piece of another object is cut with the object.
 """
 
 from __future__ import annotations

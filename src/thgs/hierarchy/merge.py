@@ -101,11 +101,12 @@ class MergeConfig:
             not merge (ours 1e-4, :data:`MIN_SUPPORT`; the reference 0). Without it a unit
             glimpsed in a view or two with vanishing weight takes affinity 1 with whatever mask
             covered it there.
-        split_incoherent: after the last pass (objects), cut each region along its weakest
-            link while the two sides, pooled, agree less than the pass's threshold
-            (:func:`thgs.hierarchy.split_incoherent`; ours True, the reference False). Growing
-            compares a unit only with the members it touches, so one unit that the masks
-            confuse can carry two objects into one region.
+        split_incoherent: after the last pass, cut each object along its weakest link between
+            sub-parts while the two sides, pooled, agree less than the pass's threshold
+            (:func:`thgs.hierarchy.split_incoherent`), cutting any part the cut crosses (ours
+            True, the reference False). Growing compares a unit only with the members it
+            touches, so one unit that the masks confuse can carry two objects into one region;
+            and a part that took in a piece of another object carries it into the object.
     """
 
     thresholds: tuple[float, float, float] = (0.9, 0.7, 0.7)
@@ -316,6 +317,30 @@ def _merge_pass(
     return region_of_unit[units].astype(np.int32)
 
 
+def _split_objects(
+    levels: list[np.ndarray],
+    neighbors: np.ndarray,
+    lifted: Sequence[ViewLift],
+    config: MergeConfig,
+    device: torch.device,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Parts and objects ([N] int32 each) after every object was checked for a split between
+    its sub-parts (:func:`split_incoherent` on level-1 units with the objects' evidence); a part
+    that a cut crosses is cut with it."""
+    units = levels[1].astype(np.int64)
+    count = int(units.max()) + 1
+    graph = unit_graph(units, neighbors, count)
+    evidence = mask_evidence(torch.from_numpy(units).to(device), count, _sources(lifted, 3, config))
+    object_of_unit = np.zeros(count, dtype=np.int64)
+    object_of_unit[units] = levels[3]
+    split = split_incoherent(
+        object_of_unit, graph, evidence, config.thresholds[2], config.min_support
+    )
+    objects = split[units]
+    _, parts = np.unique(np.stack([levels[2], objects], axis=1), axis=0, return_inverse=True)
+    return renumber_by_units(parts.reshape(-1), units), objects.astype(np.int32)
+
+
 def _absorb(
     regions: np.ndarray,
     units: np.ndarray,
@@ -428,12 +453,16 @@ def merge_levels(
             if k == 1 and config.seg_enhance:
                 sources = chain(sources, _sources(lifted, 2, config, config.enhance_stride))
             units = base if config.mode == "independent" else levels[-1].astype(np.int64)
-            split = k == 3 and config.split_incoherent
+            split = k == 3 and config.split_incoherent and config.mode == "independent"
             threshold = config.thresholds[k - 1]
             levels.append(
                 _merge_pass(units, neighbors, sources, threshold, config, device, split=split)
             )
             seconds[f"level {k}"] = time.perf_counter() - started
+        if config.split_incoherent and config.mode == "progressive":
+            started = time.perf_counter()
+            levels[2], levels[3] = _split_objects(levels, neighbors, lifted, config, device)
+            seconds["split"] = time.perf_counter() - started
     if config.min_region_gaussians > 0 and config.mode != "independent":
         started = time.perf_counter()
         last_units = base if config.mode == "instance" else levels[2].astype(np.int64)
