@@ -107,6 +107,7 @@ def test_field_records_provenance_and_round_trips(tiled, tiled_field, tmp_path):
         "level 1",
         "level 2",
         "level 3",
+        "split",
         "absorb",
         "repeats",
         "features",

@@ -512,7 +512,9 @@ class BenchReport:
         groups = self.groups()
         for (preset, variant), group in groups.items():
             stages = group[0].stages
-            merge = [s for s in stages if s in ("adjacency", "absorb") or s.startswith("level")]
+            merge = [
+                s for s in stages if s in ("adjacency", "split", "absorb") or s.startswith("level")
+            ]
             lift = f"{_stage_mean(group, ['lift']):.1f}"
             lift += " (shared)" if group[0].lift_shared else ""
             partition = _stage_mean(group, ["knn", "votes", "reweight", "partition"])

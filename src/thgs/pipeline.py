@@ -672,8 +672,9 @@ def build_field(
     Every view is lifted once (:func:`lift_scene`); merging and features reuse the lift
     (:func:`build_levels`). Each stage is logged with its wall time, and the times are stored
     in :attr:`SemanticField.timings` (``lift``, ``knn``, ``votes``, ``reweight``,
-    ``partition``, ``adjacency``, ``level 1`` … ``level 3``, ``absorb`` when small regions are
-    absorbed, ``repeats`` when repeated parts are grouped, ``features``).
+    ``partition``, ``adjacency``, ``level 1`` … ``level 3``, ``split`` when objects are checked
+    for incoherent halves, ``absorb`` when small regions are absorbed, ``repeats`` when
+    repeated parts are grouped, ``features``).
 
     Args:
         scene: N Gaussians and M cameras (:func:`thgs.load_scene` with cameras, or a

@@ -180,7 +180,7 @@ class MergeResult:
             levels 1–3 the merged regions (sub-part, part, object), each numbered 0 … R_k − 1
             in order of their first unit; nested (``parents`` set) except for the
             ``independent`` ablation.
-        seconds: wall time per pass (``"adjacency"``, ``"level 1"`` …, ``"absorb"``).
+        seconds: wall time per pass (``"adjacency"``, ``"level 1"`` …, ``"split"``, ``"absorb"``).
     """
 
     levels: RegionLevels
