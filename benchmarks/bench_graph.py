@@ -93,7 +93,7 @@ def synthetic_views(
     return out
 
 
-def run_one(n: int, views: int, visibility: float, alternatives: int) -> dict:
+def run_one(n: int, views: int, visibility: float, alternatives: int, polish: bool) -> dict:
     gaussians, segments = surface_scene(n)
     lifts = synthetic_views(segments, views, visibility)
     tiny = knn_graph(gaussians.select(np.arange(1000)))
@@ -109,7 +109,7 @@ def run_one(n: int, views: int, visibility: float, alternatives: int) -> dict:
     distances = reweight(graph, pos, neg, ReweightConfig())
     timings["reweight_s"] = time.perf_counter() - start
     start = time.perf_counter()
-    config = PartitionConfig(split_alternatives=alternatives)
+    config = PartitionConfig(split_alternatives=alternatives, polish=polish)
     labels = partition(gaussians, graph, distances, config)
     timings["partition_s"] = time.perf_counter() - start
     return {
@@ -117,6 +117,7 @@ def run_one(n: int, views: int, visibility: float, alternatives: int) -> dict:
         "views": views,
         "visibility": visibility,
         "split_alternatives": alternatives,
+        "polish": polish,
         "threads": torch.get_num_threads(),
         **{key: round(value, 2) for key, value in timings.items()},
         "total_s": round(sum(timings.values()), 2),
@@ -138,10 +139,19 @@ def main() -> None:
         default=PartitionConfig().split_alternatives,
         help="cut pursuit's K (the reference's is 2)",
     )
+    parser.add_argument(
+        "--no-polish", action="store_true", help="keep the solver's superpoints (the reference)"
+    )
     parser.add_argument("--one", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.one:
-        result = run_one(args.gaussians[0], args.views, args.visibility, args.split_alternatives)
+        result = run_one(
+            args.gaussians[0],
+            args.views,
+            args.visibility,
+            args.split_alternatives,
+            not args.no_polish,
+        )
         print(json.dumps(result))
         return
     for n in args.gaussians:
@@ -157,6 +167,7 @@ def main() -> None:
             str(args.visibility),
             "--split-alternatives",
             str(args.split_alternatives),
+            *(["--no-polish"] if args.no_polish else []),
         ]
         result = subprocess.run(command, capture_output=True, text=True, check=True)
         print(result.stdout.strip(), flush=True)

@@ -83,7 +83,7 @@ def test_every_setting_round_trips_and_is_reachable_by_set():
         if name.split(".")[-1] not in ("backend", "precision"):
             assert FieldConfig.from_json(config.to_json()) == config, name
         names.append(name)
-    assert len(names) == 62  # every setting of every stage (update when one is added)
+    assert len(names) == 63  # every setting of every stage (update when one is added)
 
 
 def test_set_takes_plain_text_for_choices():
@@ -181,6 +181,20 @@ def test_a_field_recorded_before_split_alternatives_was_partitioned_with_two(sma
         recorded, split_alternatives=2
     )
     assert "split_alternatives" in field.config["superpoints"]["partition"]  # record untouched
+
+
+def test_a_field_recorded_before_polish_was_partitioned_without_it(small_field):
+    field = load_field(small_field)
+    recorded = recorded_config(field).superpoints.partition
+    assert recorded.polish and PartitionConfig().polish
+    superpoints = field.config["superpoints"]
+    partition = {k: v for k, v in superpoints["partition"].items() if k != "polish"}
+    older = dataclasses.replace(
+        field, config={**field.config, "superpoints": {**superpoints, "partition": partition}}
+    )
+    assert recorded_config(older).superpoints.partition == dataclasses.replace(
+        recorded, polish=False
+    )
 
 
 def test_the_scene_is_found_relative_to_the_field(small_dataset, small_field, tmp_path):

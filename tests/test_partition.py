@@ -14,7 +14,7 @@ from thgs import Gaussians
 from thgs.errors import InputError
 from thgs.eval import purity
 from thgs.graph import GraphConfig, KnnGraph, PartitionConfig, knn_graph, partition
-from thgs.graph.partition import _edge_weights, _features
+from thgs.graph.partition import _connected, _edge_weights, _features, _polished
 from thgs.pipeline import SuperpointConfig
 from thgs.scene.gaussians import SH_C0
 from thgs.synthetic import generate_scene, preset
@@ -216,6 +216,7 @@ def test_presets_and_config_checks():
     assert (lerf.min_comp_weight, lerf.cp_it_max, lerf.split_damp_ratio) == (10.0, 15, 0.7)
     assert lerf.split_alternatives == 6
     assert SuperpointConfig().as_reference().partition.split_alternatives == 2
+    assert lerf.polish and not SuperpointConfig().as_reference().partition.polish
     bad_settings = (
         {"regularization": -1.0},
         {"split_damp_ratio": 0.0},
@@ -264,3 +265,80 @@ def test_partition_rejects_inconsistent_inputs():
         partition(gaussians.select(np.arange(29)), graph, graph.distances)
     empty = knn_graph(gaussians.select(np.arange(0)))
     assert partition(gaussians.select(np.arange(0)), empty, empty.distances).shape == (0,)
+
+
+def brute_energy(features, labels, sources, targets, weights, regularization):
+    """Σ_i ‖x_i − mean of its component‖² + R · Σ of the weights of edges between components."""
+    data = sum(
+        float(((features[labels == s] - features[labels == s].mean(axis=0)) ** 2).sum())
+        for s in np.unique(labels)
+    )
+    return data + regularization * float(weights[labels[sources] != labels[targets]].sum())
+
+
+def test_polishing_moves_a_misplaced_vertex_by_hand():
+    # a path 0 – 1 – 2 – 3 – 4 – 5 with features 0, 0, 0, 1, 1, 1 and unit weights (R = 0.1);
+    # vertex 3 starts with 0–2: for it, staying costs (1 − 1/4)² + 0.1 (its edge to 4) = 0.6625,
+    # joining 4–5 costs 0 + 0.1 (its edge to 2) = 0.1. It moves; energy 0.85 → 0.1.
+    features = np.array([[0.0], [0.0], [0.0], [1.0], [1.0], [1.0]])
+    sources, targets = np.arange(5), np.arange(1, 6)
+    weights = np.ones(5)
+    config = PartitionConfig(min_comp_weight=1)
+    start = np.array([0, 0, 0, 0, 1, 1])
+    polished = _polished(start, features, sources, targets, weights, config)
+    np.testing.assert_array_equal(polished, [0, 0, 0, 1, 1, 1])
+    before = brute_energy(features, start, sources, targets, weights, 0.1)
+    after = brute_energy(features, polished, sources, targets, weights, 0.1)
+    assert (before, after) == pytest.approx((0.85, 0.1))
+
+
+def test_polishing_takes_a_small_cluster_back_to_its_surface():
+    # the case behind the option: a blue surface (0–19, a ring) and a red one (20–39, a ring);
+    # a 5-vertex blue cluster (40–44, fully joined) touches the blue ring through eight edges
+    # and the red ring through one weak edge (a floater's), and the solver left it with red.
+    # Each cluster vertex alone gains by joining blue: 0 against ‖blue − red-mean‖² ≈ 1.6.
+    blue, red = [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]
+    features = np.array([blue] * 20 + [red] * 20 + [blue] * 5)
+    edges = [(i, (i + 1) % 20) for i in range(20)] + [
+        (20 + i, 20 + (i + 1) % 20) for i in range(20)
+    ]
+    edges += [(40 + a, 40 + b) for a in range(5) for b in range(a + 1, 5)]
+    edges += [(40 + a % 5, a) for a in range(8)] + [(44, 30)]
+    sources, targets = np.array(edges).T
+    weights = np.ones(len(edges))
+    weights[-1] = 0.1
+    start = np.array([0] * 20 + [1] * 20 + [1] * 5)
+    polished = _polished(start, features, sources, targets, weights, PartitionConfig())
+    np.testing.assert_array_equal(polished, [0] * 20 + [1] * 20 + [0] * 5)
+    energies = [
+        brute_energy(features, labels, sources, targets, weights, 0.1)
+        for labels in (start, polished)
+    ]
+    assert energies[1] < energies[0]
+
+
+def test_pieces_are_made_connected_and_small_ones_join_their_strongest_neighbour():
+    # a path 0 … 9 labelled 0 0 0 1 1 0 0 0 0 2: label 0 is two pieces (0–2 and 5–8). With a
+    # minimum of 3, the piece {3, 4} joins the piece it shares most weight with: {5 … 8}
+    # (edge 4–5 of weight 2 against 2–3 of weight 1); {9} joins {5 … 8} too.
+    sources, targets = np.arange(9), np.arange(1, 10)
+    weights = np.ones(9)
+    weights[4] = 2.0
+    labels = np.array([0, 0, 0, 1, 1, 0, 0, 0, 0, 2])
+    pieces_only = _connected(labels, sources, targets, weights, min_size=1)
+    assert len(np.unique(pieces_only)) == 4
+    assert len(np.unique(pieces_only[[0, 5]])) == 2  # the two halves of label 0 are apart
+    joined = _connected(labels, sources, targets, weights, min_size=3)
+    assert joined[0] == joined[1] == joined[2]
+    assert len(set(joined[3:])) == 1 and joined[3] != joined[0]
+
+
+def test_polishing_lowers_the_objective_on_a_noisy_plane():
+    gaussians = noisy_plane(seed=5)
+    graph = knn_graph(gaussians)
+    config = PartitionConfig(max_num_threads=1)
+    solver = partition(gaussians, graph, graph.distances, replace(config, polish=False))
+    polished = partition(gaussians, graph, graph.distances, config)
+    assert objective(gaussians, graph, polished, config) < objective(
+        gaussians, graph, solver, config
+    )

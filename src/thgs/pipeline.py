@@ -114,13 +114,15 @@ class SuperpointConfig:
     def as_reference(self) -> SuperpointConfig:
         """The same numbers with the authors' behaviour where ours differs: absolute vote
         offsets (0.1 / 0.02 scene units²), edge weights against the reweighted mean, the
-        solver's 2 split alternatives."""
+        solver's 2 split alternatives, the solver's superpoints unpolished."""
         return replace(
             self,
             reweight=replace(
                 self.reweight, mode="absolute", negative_offset=0.1, positive_offset=0.02
             ),
-            partition=replace(self.partition, weight_scale="reweighted", split_alternatives=2),
+            partition=replace(
+                self.partition, weight_scale="reweighted", split_alternatives=2, polish=False
+            ),
         )
 
 
@@ -478,6 +480,7 @@ _BEFORE_RECORDED = {
     ("merge", "min_support"): 0.0,
     ("merge", "split_incoherent"): False,
     ("superpoints", "partition", "split_alternatives"): 2,
+    ("superpoints", "partition", "polish"): False,
 }
 """Settings added after fields were first recorded, with the value every earlier build used."""
 

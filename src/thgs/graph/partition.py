@@ -67,6 +67,11 @@ class PartitionConfig:
             superpoint (synth-small seed 0: 27 % of a stack of books). More alternatives cost
             split time and give purer superpoints; the solver's objective is not lower for it
             (docs/partition.md).
+        polish: after cut pursuit, move single Gaussians to a neighbouring superpoint while that
+            lowers cut pursuit's own energy (ours True; the reference keeps the solver's
+            output). The solver merges a component smaller than ``min_comp_weight`` into an
+            adjacent one, which can be the wrong one: five Gaussians of a table's underside,
+            joined to a chair's superpoint through floaters (docs/partition.md).
     """
 
     regularization: float = 0.1
@@ -79,6 +84,7 @@ class PartitionConfig:
     max_num_threads: int = 0
     weight_scale: Literal["graph", "reweighted"] = "graph"
     split_alternatives: int = 6
+    polish: bool = True
 
     def __post_init__(self) -> None:
         if not (self.regularization >= 0 and self.spatial_weight >= 0):
@@ -244,6 +250,202 @@ def _cut_pursuit(
     return components.astype(np.int64)
 
 
+def _polished(
+    labels: np.ndarray,
+    features: np.ndarray,
+    sources: np.ndarray,
+    targets: np.ndarray,
+    weights: np.ndarray,
+    config: PartitionConfig,
+) -> np.ndarray:
+    """[N] component ids after passes of single-vertex moves on cut pursuit's energy
+    ``Σ_i ‖x_i − c(i)‖² + R · Σ_(i,j) w_ij [i, j apart]`` (c: each component's mean feature).
+
+    In each pass every vertex takes, among its own component and its neighbours', the one of
+    lowest energy for it alone (:func:`_best_components`), the means held fixed; a pass is kept
+    only if the whole energy, recomputed, went down. At most ``config.cp_it_max`` passes. The
+    components are then made connected again (:func:`_connected`), keeping
+    ``config.min_comp_weight``.
+    """
+    ids, labels = np.unique(labels, return_inverse=True)  # 0 … C − 1 from here on
+    count = ids.size
+    n = len(labels)
+    cost = config.regularization * weights.astype(np.float64)
+    first_edge, neighbour, edge_cost = _both_directions(n, sources, targets, cost)
+    features = features.astype(np.float64)
+    means = _means(labels, features, count)
+    energy = _energy(labels, features, means, sources, targets, cost)
+    for _ in range(config.cp_it_max):
+        moved = _best_components(first_edge, neighbour, edge_cost, labels, features, means)
+        if (moved == labels).all():
+            break
+        moved_means = _means(moved, features, count)
+        moved_energy = _energy(moved, features, moved_means, sources, targets, cost)
+        if moved_energy >= energy:
+            break
+        labels, means, energy = moved, moved_means, moved_energy
+    return _connected(labels, sources, targets, cost, config.min_comp_weight)
+
+
+@numba.njit(cache=True)
+def _both_directions(n, sources, targets, cost):  # pragma: no cover
+    """Forward star ``(first_edge [n + 1], neighbour [2E], cost [2E])`` of the undirected edges
+    ``sources[e] – targets[e]``, each stored from both ends."""
+    first_edge = np.zeros(n + 1, dtype=np.int64)
+    for e in range(sources.size):
+        first_edge[sources[e] + 1] += 1
+        first_edge[targets[e] + 1] += 1
+    for v in range(n):
+        first_edge[v + 1] += first_edge[v]
+    fill = first_edge[:-1].copy()
+    neighbour = np.empty(2 * sources.size, dtype=np.int64)
+    both_cost = np.empty(2 * sources.size, dtype=np.float64)
+    for e in range(sources.size):
+        a, b = sources[e], targets[e]
+        neighbour[fill[a]] = b
+        both_cost[fill[a]] = cost[e]
+        fill[a] += 1
+        neighbour[fill[b]] = a
+        both_cost[fill[b]] = cost[e]
+        fill[b] += 1
+    return first_edge, neighbour, both_cost
+
+
+@numba.njit(cache=True)
+def _best_components(first_edge, neighbour, cost, dense, features, means):  # pragma: no cover
+    """[N] for each vertex, among its own component and its neighbours' (``dense`` ids), the one
+    of lowest ``‖x − mean‖² + weight of its edges into other components``; its own on a tie,
+    else the lowest id. Edges in forward-star form over both directions."""
+    n, dim = features.shape
+    best = dense.copy()
+    options = np.empty(n + 1, dtype=np.int64)
+    joined = np.empty(n + 1, dtype=np.float64)
+    for v in range(n):
+        own = dense[v]
+        count = 1
+        options[0] = own
+        joined[0] = 0.0
+        total = 0.0
+        apart = False
+        for e in range(first_edge[v], first_edge[v + 1]):
+            other = dense[neighbour[e]]
+            total += cost[e]
+            slot = -1
+            for q in range(count):
+                if options[q] == other:
+                    slot = q
+                    break
+            if slot < 0:
+                apart = True
+                slot = count
+                options[count] = other
+                joined[count] = 0.0
+                count += 1
+            joined[slot] += cost[e]
+        if not apart:
+            continue
+        chosen, lowest = own, np.inf
+        for q in range(count):
+            distance = 0.0
+            for d in range(dim):
+                step = features[v, d] - means[options[q], d]
+                distance += step * step
+            energy = distance + total - joined[q]
+            if energy < lowest or (
+                energy == lowest and (options[q] == own or (chosen != own and options[q] < chosen))
+            ):
+                chosen, lowest = options[q], energy
+        best[v] = chosen
+    return best
+
+
+def _connected(
+    labels: np.ndarray, sources: np.ndarray, targets: np.ndarray, cost: np.ndarray, min_size: float
+) -> np.ndarray:
+    """[N] ids of the connected pieces of each component (edges ``sources[e] – targets[e]`` of
+    weight ``cost[e]``); a piece smaller than ``min_size`` joins the adjacent piece it shares the
+    most edge weight with (repeatedly, so that joined small pieces grow), as the solver merges
+    its small components."""
+    same = labels[sources] == labels[targets]
+    _, piece = np.unique(
+        _union_roots(len(labels), sources[same], targets[same]), return_inverse=True
+    )
+    across = np.flatnonzero(~same)
+    start = np.r_[sources[across], targets[across]]
+    end = np.r_[targets[across], sources[across]]
+    weight = np.r_[cost[across], cost[across]]
+    while True:
+        count = int(piece.max()) + 1
+        sizes = np.bincount(piece, minlength=count)
+        small = (piece[start] != piece[end]) & (sizes[piece[start]] < min_size)
+        if not small.any():
+            return piece.astype(np.int64)
+        pairs = piece[start[small]] * count + piece[end[small]]
+        keys, inverse = np.unique(pairs, return_inverse=True)
+        shared = np.bincount(inverse, weights=weight[small])
+        source, target = keys // count, keys % count
+        order = np.lexsort((target, -shared, source))  # per small piece: most shared weight
+        first = order[np.r_[True, np.diff(source[order]) != 0]]
+        parent = np.arange(count)
+        parent[source[first]] = target[first]
+        joined = coo_matrix((np.ones(count), (np.arange(count), parent)), (count, count))
+        _, root = connected_components(joined, directed=False)
+        piece = root[piece]
+
+
+@numba.njit(cache=True)
+def _union_roots(n, sources, targets):  # pragma: no cover
+    """[n] a root vertex per connected piece of the edges ``sources[e] – targets[e]``
+    (union–find with path halving)."""
+    parent = np.arange(n)
+    for e in range(sources.size):
+        a, b = sources[e], targets[e]
+        while parent[a] != a:
+            parent[a] = parent[parent[a]]
+            a = parent[a]
+        while parent[b] != b:
+            parent[b] = parent[parent[b]]
+            b = parent[b]
+        if a != b:
+            parent[max(a, b)] = min(a, b)
+    for v in range(n):
+        root = v
+        while parent[root] != root:
+            root = parent[root]
+        parent[v] = root
+    return parent
+
+
+@numba.njit(cache=True)
+def _means(labels, features, count):  # pragma: no cover
+    """[count, D] mean feature of each component (0 for an empty one)."""
+    sums = np.zeros((count, features.shape[1]))
+    sizes = np.zeros(count)
+    for v in range(features.shape[0]):
+        sizes[labels[v]] += 1.0
+        for d in range(features.shape[1]):
+            sums[labels[v], d] += features[v, d]
+    for c in range(count):
+        if sizes[c] > 0:
+            sums[c] /= sizes[c]
+    return sums
+
+
+@numba.njit(cache=True)
+def _energy(labels, features, means, sources, targets, cost):  # pragma: no cover
+    """Cut pursuit's energy of ``labels`` with components' mean features ``means``, over the
+    undirected edges ``sources[e] – targets[e]`` of weight ``cost[e]`` (R included)."""
+    total = 0.0
+    for v in range(features.shape[0]):
+        for d in range(features.shape[1]):
+            step = features[v, d] - means[labels[v], d]
+            total += step * step
+    for e in range(sources.size):
+        if labels[sources[e]] != labels[targets[e]]:
+            total += cost[e]
+    return total
+
+
 def _relabel(components: np.ndarray) -> np.ndarray:
     """[N] int32 ids 0 … S−1 numbered by each component's smallest Gaussian index."""
     _, first, inverse = np.unique(components, return_index=True, return_inverse=True)
@@ -315,6 +517,8 @@ def partition(
         components[vertices] += _cut_pursuit(
             features[vertices], local[sources[edges]], local[targets[edges]], weights[edges], config
         )
+    if config.polish:
+        components = _polished(components, features, sources, targets, weights, config)
     labels = _relabel(components)
     log.info(
         "partition: %d Gaussians, %d edges, %d connected pieces (%d solved) → %d superpoints "
