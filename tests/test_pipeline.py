@@ -198,6 +198,6 @@ def test_presets_and_reference_switch():
     reference = lerf.as_reference()
     assert reference.reweight == ReweightConfig.reference()
     assert reference.partition == replace(
-        lerf.partition, weight_scale="reweighted", split_alternatives=2
+        lerf.partition, weight_scale="reweighted", split_alternatives=2, polish=False
     )
     assert reference.lift == lerf.lift and reference.graph == lerf.graph

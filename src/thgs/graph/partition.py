@@ -465,7 +465,9 @@ def partition(
     The solver is run once per connected component of the graph: ``cp_d0_dist`` only separates
     vertices across edges it cuts, so pieces of a disconnected graph would otherwise share one
     value. A component smaller than ``max(2, 2 · min_comp_weight)`` Gaussians cannot hold two
-    superpoints and is one superpoint without a solver call.
+    superpoints and is one superpoint without a solver call. With ``config.polish`` single
+    Gaussians then move to a neighbouring superpoint while that lowers the same energy
+    (:func:`_polished`).
 
     Args:
         gaussians: the N Gaussians; centres (world frame, scene units), DC colours and surface
