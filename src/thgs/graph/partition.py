@@ -267,8 +267,8 @@ def _polished(
     components are then made connected again (:func:`_connected`), keeping
     ``config.min_comp_weight``.
     """
-    ids, labels = np.unique(labels, return_inverse=True)  # 0 … C − 1 from here on
-    count = ids.size
+    _, labels = np.unique(labels, return_inverse=True)  # 0 … C − 1 from here on
+    count = int(labels.max()) + 1
     n = len(labels)
     cost = config.regularization * weights.astype(np.float64)
     first_edge, neighbour, edge_cost = _both_directions(n, sources, targets, cost)
@@ -318,8 +318,9 @@ def _best_components(first_edge, neighbour, cost, dense, features, means):  # pr
     else the lowest id. Edges in forward-star form over both directions."""
     n, dim = features.shape
     best = dense.copy()
-    options = np.empty(n + 1, dtype=np.int64)
-    joined = np.empty(n + 1, dtype=np.float64)
+    slots = np.max(first_edge[1:] - first_edge[:-1]) + 1 if n else 1  # own + one per edge
+    options = np.empty(slots, dtype=np.int64)
+    joined = np.empty(slots, dtype=np.float64)
     for v in range(n):
         own = dense[v]
         count = 1
@@ -386,10 +387,7 @@ def _connected(
         source, target = keys // count, keys % count
         order = np.lexsort((target, -shared, source))  # per small piece: most shared weight
         first = order[np.r_[True, np.diff(source[order]) != 0]]
-        parent = np.arange(count)
-        parent[source[first]] = target[first]
-        joined = coo_matrix((np.ones(count), (np.arange(count), parent)), (count, count))
-        _, root = connected_components(joined, directed=False)
+        _, root = np.unique(_union_roots(count, source[first], target[first]), return_inverse=True)
         piece = root[piece]
 
 
