@@ -3,6 +3,7 @@
     .venv/bin/python benchmarks/bench_build.py                          # synth-small, medium
     .venv/bin/python benchmarks/bench_build.py --presets synth-small --seeds 0 1 2 3
     .venv/bin/python benchmarks/bench_build.py --backends numba torch gsplat   # side by side
+    .venv/bin/python benchmarks/bench_build.py --runs numba:cpu gsplat:cuda --no-reference
 
 Each (preset, seed) runs in its own process. The guidance is the synthetic oracle's at its default
 fault severity (0.5) with all-MiniLM-L6-v2 text features (as in ``thgs demo``: the grouping of
@@ -64,26 +65,48 @@ def feature_accuracy(regions: np.ndarray, truth: np.ndarray, features, names, en
 
 def _variants(args: argparse.Namespace) -> dict[str, tuple[FieldConfig, torch.device]]:
     """ "ours" on every asked backend and device present, and the authors' behaviour once."""
+    if args.runs:
+        pairs = [run.split(":", 1) for run in args.runs]
+        if any(len(pair) != 2 for pair in pairs):
+            raise SystemExit(f"--runs takes BACKEND:DEVICE pairs, got {args.runs}")
+    else:
+        devices = args.devices if args.devices else present_devices()
+        pairs = [(backend, device) for device in devices for backend in args.backends]
     variants = {}
-    for device_name in args.devices if args.devices else present_devices():
+    for backend, device_name in pairs:
         device = resolve_device(device_name)
-        for backend in args.backends:
-            raster = RasterConfig(backend=backend)
-            try:
-                resolve_backend(raster, device)
-            except InputError:
-                continue
-            config = FieldConfig.lerf()
-            lift = replace(config.superpoints.lift, raster=raster)
-            config = replace(config, superpoints=replace(config.superpoints, lift=lift))
-            variants[f"ours {backend} {device}"] = (config, device)
-    variants["reference"] = (FieldConfig().as_reference(), torch.device("cpu"))
+        raster = RasterConfig(backend=backend)
+        try:
+            resolve_backend(raster, device)
+        except InputError:
+            if args.runs:
+                raise
+            continue
+        config = FieldConfig.lerf()
+        lift = replace(config.superpoints.lift, raster=raster)
+        config = replace(config, superpoints=replace(config.superpoints, lift=lift))
+        variants[f"ours {backend} {device}"] = (config, device)
+    if args.reference:
+        variants["reference"] = (FieldConfig().as_reference(), torch.device("cpu"))
     return variants
 
 
 def options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--backends", nargs="*", default=["numba"], help=f"of {BACKENDS}")
     parser.add_argument("--devices", nargs="*", default=None, help="default: every one present")
+    parser.add_argument(
+        "--runs",
+        nargs="*",
+        default=None,
+        metavar="BACKEND:DEVICE",
+        help="exactly these pairs (e.g. numba:cpu torch:cuda) instead of --backends × --devices",
+    )
+    parser.add_argument(
+        "--reference",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="also build with the authors' behaviour (numba, CPU)",
+    )
 
 
 def run_one(name: str, seed: int, args: argparse.Namespace) -> dict:
