@@ -31,6 +31,17 @@ def _unit(vector: np.ndarray) -> np.ndarray:
     return vector / np.linalg.norm(vector)
 
 
+def median_direction(units, weights, steps, softness):
+    """The weighted mean direction of unit vectors, then ``steps`` reweighted steps, each view
+    weighing ``w / (‖u − m‖ + ε)`` with m the previous direction."""
+    units, weights = np.asarray(units, float), np.asarray(weights, float)
+    direction = _unit(weights @ units)
+    for _ in range(steps):
+        distances = np.linalg.norm(units - direction, axis=1)
+        direction = _unit((weights / (distances + softness)) @ units)
+    return direction
+
+
 def reference_features(labels, level, lifted, guidance, config, regions, centres=None):
     """The formulas of docs/features.md, one region and one view at a time.
 
@@ -39,6 +50,7 @@ def reference_features(labels, level, lifted, guidance, config, regions, centres
     dim = guidance[0].features.shape[1]
     out = np.zeros((regions, dim))
     for r in range(regions):
+        units, weights = [], []
         members = [int(i) for i in np.flatnonzero(labels == r)]
         if not members:
             continue
@@ -69,9 +81,11 @@ def reference_features(labels, level, lifted, guidance, config, regions, centres
                     if centres[v][i] >= 0:
                         total += float(view.max_weights[row[i]]) * features[centres[v][i]]
             if np.linalg.norm(total) > 0 and weight > 0:
-                out[r] += _unit(total) * weight
+                units.append(_unit(total))
+                weights.append(weight)
+        if units:
+            out[r] = median_direction(units, weights, config.median_steps, config.median_softness)
     seen = np.linalg.norm(out, axis=1) > 0
-    out[seen] /= np.linalg.norm(out[seen], axis=1, keepdims=True)
     return out, seen
 
 
@@ -160,6 +174,7 @@ def known_centres(monkeypatch):
 @pytest.mark.parametrize("level", [1, 3])
 @pytest.mark.parametrize("authors", [False, True])
 def test_matches_the_reference_on_random_views(seed, mode, level, authors, known_centres):
+    """Ours (two median steps, visibility weights) and the authors' (the weighted mean)."""
     case = random_case(seed)
     config = FeatureConfig(mode=mode, min_visible=0.2)
     config = config.as_reference() if authors else config
@@ -320,6 +335,70 @@ def test_faintly_seen_gaussians_weigh_little_by_hand():
     np.testing.assert_allclose(theirs[0], _unit(0.6 * a + 0.4 * b), atol=1e-6)
 
 
+def smoothed_l1(direction, units, weights, softness):
+    """Σ w ρ(‖u − m‖) with ρ(d) = d − ε ln(1 + d/ε): what the median steps minimise."""
+    distances = np.linalg.norm(np.asarray(units) - direction, axis=1)
+    return float(np.sum(weights * (distances - softness * np.log1p(distances / softness))))
+
+
+def outlier_views(angles_deg, seen):
+    """Region 0 (Gaussians 0–9) under one mask per view whose 2-D feature points at the given
+    angle; view v sees ``seen[v]`` of the ten (its weight p = seen / 10 with power 0)."""
+    lifted, guidance, units = [], [], []
+    for v, (angle, count) in enumerate(zip(angles_deg, seen)):
+        unit = np.array([np.cos(np.radians(angle)), np.sin(np.radians(angle)), 0.0])
+        lifted.append(one_level_view(np.arange(count), [0] * count, [0.9] * count))
+        guidance.append(guidance_with([unit], f"view_{v}"))
+        units.append(unit)
+    return np.zeros(10, dtype=np.int32), lifted, guidance, np.array(units)
+
+
+def test_median_steps_find_the_brute_force_median_of_views_with_one_outlier():
+    # four views agree on a name (angles −6° … 4°), one sees the region through an occluder
+    # (90°) with as much weight as two of them: the mean leans towards it, the median does not
+    angles, seen = [-6.0, -1.0, 2.0, 4.0, 90.0], [5, 5, 5, 5, 10]
+    labels, lifted, guidance, units = outlier_views(angles, seen)
+    weights = np.array(seen) / 10
+    plain = FeatureConfig(min_max_weight=0.0, visibility_power=0.0, median_steps=0)
+    softness = plain.median_softness
+
+    def angle_of(config):
+        features, seen_rows = region_features(labels, 1, lifted, guidance, config)
+        assert seen_rows[0] and abs(features[0, 2]) < 1e-7
+        return np.degrees(np.arctan2(features[0, 1], features[0, 0]))
+
+    grid = np.radians(np.linspace(-90.0, 180.0, 270_001))
+    candidates = np.stack([np.cos(grid), np.sin(grid), np.zeros_like(grid)], axis=1)
+    distances = np.linalg.norm(candidates[:, None, :] - units[None], axis=2)
+    losses = (distances - softness * np.log1p(distances / softness)) @ weights
+    best = np.degrees(grid[np.argmin(losses)])
+    mean = angle_of(plain)
+    assert mean == pytest.approx(np.degrees(np.arctan2(*(weights @ units)[[1, 0]])), abs=1e-4)
+    assert mean > 25  # the outlier's pull on the mean
+    converged = angle_of(dataclasses.replace(plain, median_steps=200))
+    assert converged == pytest.approx(best, abs=2e-3) and 0 < best < 5  # mean: over 25°
+    # every step lowers the smoothed L1 distance (a majorize–minimize step) and two already
+    # bring the direction within 6° of the agreeing views'
+    previous = math.inf
+    for steps in range(6):
+        angle = np.radians(angle_of(dataclasses.replace(plain, median_steps=steps)))
+        loss = smoothed_l1(np.array([np.cos(angle), np.sin(angle), 0]), units, weights, softness)
+        assert loss <= previous + 1e-9
+        previous = loss
+    assert abs(angle_of(dataclasses.replace(plain, median_steps=2)) - best) < 6
+
+
+def test_median_steps_leave_agreeing_views_alone():
+    # every view gives the same direction: mean and median are that direction
+    labels, lifted, guidance, _ = outlier_views([30.0, 30.0, 30.0], [3, 7, 10])
+    for steps in (0, 2, 5):
+        config = FeatureConfig(median_steps=steps)
+        features, _ = region_features(labels, 1, lifted, guidance, config)
+        np.testing.assert_allclose(
+            features[0], [np.cos(np.pi / 6), np.sin(np.pi / 6), 0], atol=1e-6
+        )
+
+
 def front_camera(count: int = 1) -> Cameras:
     """Identity pose, unit focal length, no offset: world (x, y, 1) lands on pixel (x, y)."""
     return cameras_for(count)
@@ -328,9 +407,9 @@ def front_camera(count: int = 1) -> Cameras:
 def test_centres_by_hand():
     # region 0 (Gaussians 0–3) in view 0: three used (w 0.5 on a mask-0 pixel, 0.2 and 0.1 on
     # mask-1 pixels), one under centre_weight; portion 3/4. In view 1 all four sit on mask 2
-    # with w 1: portion 1. f = 0.75 · normalize(0.5 a + 0.3 b) + c.
-    # region 1 (4–13): one of ten used in view 0 (portion 0.1 ≥ min_visible); region 2
-    # (14–23): none used anywhere.
+    # with w 1: portion 1. The authors' f = 0.75 · normalize(0.5 a + 0.3 b) + c; ours takes
+    # two median steps from there. Region 1 (4–13): one of ten used in view 0 (portion
+    # 0.1 ≥ min_visible); region 2 (14–23): none used anywhere.
     a, b, c = np.eye(3)
     pixels = np.array([[0, 0], [1, 0], [2, 0], [3, 0]] + [[5, 5]] * 20) + 0.5
     means = np.concatenate([pixels, np.ones((24, 1))], axis=1)
@@ -350,18 +429,15 @@ def test_centres_by_hand():
         ViewGuidance("view_1", segments1, np.stack([a, b, c]).astype(np.float32)),
     ]
     labels = np.repeat(np.arange(3, dtype=np.int32), [4, 10, 10])
-    features, seen = region_features(
-        labels,
-        1,
-        [view0, view1],
-        guidance,
-        FeatureConfig.three_dovs(),
-        gaussians=gaussians,
-        cameras=front_camera(2),
-    )
-    np.testing.assert_allclose(features[0], _unit(0.75 * _unit(0.5 * a + 0.3 * b) + c), atol=1e-6)
+    kwargs = {"gaussians": gaussians, "cameras": front_camera(2)}
+    dovs = FeatureConfig.three_dovs()
+    features, seen = region_features(labels, 1, [view0, view1], guidance, dovs, **kwargs)
+    views = [_unit(0.5 * a + 0.3 * b), c]
+    np.testing.assert_allclose(features[0], median_direction(views, [0.75, 1], 2, 0.1), atol=1e-6)
     np.testing.assert_allclose(features[1], c, atol=1e-6)
     np.testing.assert_array_equal(seen, [True, True, False])
+    authors, _ = region_features(labels, 1, [view0, view1], guidance, dovs.as_reference(), **kwargs)
+    np.testing.assert_allclose(authors[0], _unit(0.75 * views[0] + c), atol=1e-6)
     strict = FeatureConfig(mode="centres", min_visible=0.11)
     _, seen = region_features(
         labels, 1, [view0], guidance[:1], strict, gaussians=gaussians, cameras=front_camera()
@@ -487,6 +563,8 @@ def test_presets():
     assert (dovs.mode, dovs.centre_weight, dovs.min_visible) == ("centres", 0.01, 0.1)
     authors = FeatureConfig.lerf().as_reference()
     assert (authors.min_max_weight, authors.visibility_power) == (0.0, 0.0)
+    assert (FeatureConfig().median_steps, authors.median_steps) == (2, 0)
+    assert FeatureConfig.three_dovs().as_reference().median_steps == 0
 
 
 @pytest.mark.parametrize(
@@ -501,6 +579,11 @@ def test_presets():
         {"min_max_weight": 1.0},
         {"visibility_power": -1.0},
         {"visibility_power": math.nan},
+        {"median_steps": -1},
+        {"median_steps": 1.5},
+        {"median_steps": True},
+        {"median_softness": 0.0},
+        {"median_softness": math.nan},
     ],
 )
 def test_bad_config(fields):

@@ -16,6 +16,7 @@ import pytest
 
 from test_cli import run
 from thgs.errors import InputError
+from thgs.features import FeatureConfig
 from thgs.field import load_field
 from thgs.field_scene import open_field_scene
 from thgs.graph import PartitionConfig
@@ -83,7 +84,7 @@ def test_every_setting_round_trips_and_is_reachable_by_set():
         if name.split(".")[-1] not in ("backend", "precision"):
             assert FieldConfig.from_json(config.to_json()) == config, name
         names.append(name)
-    assert len(names) == 63  # every setting of every stage (update when one is added)
+    assert len(names) == 65  # every setting of every stage (update when one is added)
 
 
 def test_set_takes_plain_text_for_choices():
@@ -195,6 +196,15 @@ def test_a_field_recorded_before_polish_was_partitioned_without_it(small_field):
     assert recorded_config(older).superpoints.partition == dataclasses.replace(
         recorded, polish=False
     )
+
+
+def test_a_field_recorded_before_median_steps_took_the_mean_over_views(small_field):
+    field = load_field(small_field)
+    recorded = recorded_config(field).features
+    assert recorded.median_steps == FeatureConfig().median_steps == 2
+    features = {k: v for k, v in field.config["features"].items() if k != "median_steps"}
+    older = dataclasses.replace(field, config={**field.config, "features": features})
+    assert recorded_config(older).features == dataclasses.replace(recorded, median_steps=0)
 
 
 def test_the_scene_is_found_relative_to_the_field(small_dataset, small_field, tmp_path):

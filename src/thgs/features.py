@@ -2,7 +2,7 @@
 
 A region at level k ∈ {1, 2, 3} takes its feature from SAM level k's masks (1 ↔ ``s``, 2 ↔ ``m``,
 3 ↔ ``l``: the same index is the guidance level and the :class:`~thgs.lift.ViewLift` label
-column). Two training-free, one-pass modes, both the reference's:
+column). Two training-free modes, both the reference's:
 
 - ``"shares"`` (its mode 2, LERF preset): per view v and region r, the share ``s_t`` of each mask
   t among r's Gaussians that carry a label in v; shares below ``min_share`` are dropped (no
@@ -19,11 +19,20 @@ column). Two training-free, one-pass modes, both the reference's:
   least ``min_visible`` of r's Gaussians are used in v, ``f_r += normalize(Σ w · F_v[mask]) ·
   portion`` with ``portion`` that share.
 
-Finally every ``f_r`` is L2-normalized; regions no view contributed to keep a zero row. The work
+Finally every ``f_r`` is L2-normalized; regions no view contributed to keep a zero row. That is
+the reference's weighted mean of the views' unit vectors. **Ours then takes**
+``FeatureConfig.median_steps`` (2) **steps towards their weighted median direction**: each step
+pools the views again with view v's weight divided by ``‖u_v − m_r‖ + ε`` (``u_v`` its unit
+vector for r, ``m_r`` the previous step's feature; iteratively reweighted least squares, whose
+fixed point minimises ``Σ_v p_r^v ρ(‖u_v − m_r‖)`` over unit ``m_r`` with
+``ρ(d) = d − ε ln(1 + d/ε)``, an L1 distance smoothed below ε). A view that sees a region
+mostly through or beside another thing gives it that thing's name; the mean moves towards it
+in proportion to its weight, the median much less. The work
 runs on the lifted views' device, vectorized per view (indexed sums into a dense [R, masks of the
 level] table and one product with the masks' features), so memory per view is O(n_seen + R·masks
-+ masks·D + R·D) and time is linear in the number of seen Gaussians. Only the [R, D] result comes
-back to the CPU.
++ masks·D + R·D) and time is linear in the number of seen Gaussians (times ``median_steps + 1``:
+each step goes over the views again rather than holding every view's [R, D] vectors). Only the
+[R, D] result comes back to the CPU.
 """
 
 from __future__ import annotations
@@ -70,6 +79,14 @@ class FeatureConfig:
             exceeds this.
         min_visible: mode centres: a view contributes to a region only if at least this share
             (in [0, 1]) of the region's Gaussians are used in it.
+        median_steps: both modes: steps from the weighted mean of the views' unit vectors
+            towards their weighted median direction (ours 2; the reference 0: the mean). Each
+            step pools the views again, view v's vector ``u_v`` of region r weighing
+            ``p_r^v / (‖u_v − m_r‖ + median_softness)`` with ``m_r`` the previous step's unit
+            feature: one view that disagrees with the others (a part seen mostly through or
+            next to another thing) pulls the result less than in the mean.
+        median_softness: ε of those weights (unitless, on distances between unit vectors,
+            which lie in [0, 2]): views closer than ε to ``m_r`` weigh about alike.
     """
 
     mode: Literal["shares", "centres"] = "shares"
@@ -79,6 +96,8 @@ class FeatureConfig:
     visibility_power: float = 2.0
     centre_weight: float = 0.01
     min_visible: float = 0.1
+    median_steps: int = 2
+    median_softness: float = 0.1
 
     def __post_init__(self) -> None:
         if self.mode not in ("shares", "centres"):
@@ -93,6 +112,16 @@ class FeatureConfig:
             value = getattr(self, name)
             if not 0.0 <= value < 1.0:
                 raise InputError("FeatureConfig", f"{name} must be in [0, 1), got {value}")
+        if isinstance(self.median_steps, bool) or not (
+            isinstance(self.median_steps, int) and self.median_steps >= 0
+        ):
+            raise InputError(
+                "FeatureConfig", f"median_steps must be an integer ≥ 0, got {self.median_steps!r}"
+            )
+        if not self.median_softness > 0:
+            raise InputError(
+                "FeatureConfig", f"median_softness must be > 0, got {self.median_softness}"
+            )
         if not self.visibility_power >= 0:
             raise InputError(
                 "FeatureConfig", f"visibility_power must be ≥ 0, got {self.visibility_power}"
@@ -110,9 +139,9 @@ class FeatureConfig:
         return cls(mode="centres", centre_weight=0.01, min_visible=0.1)
 
     def as_reference(self) -> FeatureConfig:
-        """The same numbers with the authors' mode 2: every labelled Gaussian counts once,
-        however faintly the view sees it (mode centres has nothing of ours to switch off)."""
-        return replace(self, min_max_weight=0.0, visibility_power=0.0)
+        """The same numbers with the authors' pooling: the weighted mean over views, and in
+        mode shares every labelled Gaussian counting once, however faintly the view sees it."""
+        return replace(self, min_max_weight=0.0, visibility_power=0.0, median_steps=0)
 
 
 def _centre_pixels(means: Tensor, camera: Cameras, indices: Tensor, height: int, width: int):
@@ -255,8 +284,9 @@ def _check_geometry(
     return gaussians.means.detach(), cameras
 
 
-def _accumulate(out: Tensor, pooled: Tensor, features: Tensor, scale: Tensor) -> None:
-    """``out[r] += normalize(pooled[r] @ features) · scale[r]`` for rows with a non-zero sum.
+def _accumulate(level: _Level, pooled: Tensor, features: Tensor, scale: Tensor) -> None:
+    """``out[r] += u_r · scale[r]`` with ``u_r = normalize(pooled[r] @ features)``, for rows with
+    a non-zero sum; with a ``centre`` (a median step), ``scale[r] / (‖u_r − centre[r]‖ + ε)``.
 
     ``pooled`` is [R, M] (region × the masks ``features`` [M, D] describe)."""
     rows = torch.nonzero((pooled != 0).any(dim=1) & (scale > 0))[:, 0]
@@ -266,7 +296,12 @@ def _accumulate(out: Tensor, pooled: Tensor, features: Tensor, scale: Tensor) ->
     norms = torch.linalg.vector_norm(sums, dim=1)
     nonzero = norms > 0
     rows, sums, norms = rows[nonzero], sums[nonzero], norms[nonzero]
-    out[rows] += sums * (scale[rows] / norms)[:, None]
+    units = sums / norms[:, None]
+    weights = scale[rows]
+    if level.centre is not None:
+        distances = torch.linalg.vector_norm(units - level.centre[rows], dim=1)
+        weights = weights / (distances + level.softness)
+    level.out[rows] += units * weights[:, None]
 
 
 def _pooled(
@@ -285,18 +320,27 @@ def _pooled(
     return table.reshape(count, width), low
 
 
+def _normalized(rows: Tensor) -> Tensor:
+    """``rows`` [R, D] scaled to unit length; zero rows stay zero."""
+    norms = torch.linalg.vector_norm(rows, dim=1, keepdim=True)
+    return torch.where(norms > 0, rows / torch.where(norms > 0, norms, 1.0), 0.0)
+
+
 def _fraction(values: Tensor, sizes: Tensor) -> Tensor:
     return torch.where(sizes > 0, values / torch.where(sizes > 0, sizes, 1.0), 0.0)
 
 
 @dataclass(frozen=True, eq=False)
 class _Level:
-    """One hierarchy level's accumulation: its regions and running feature sums."""
+    """One hierarchy level's accumulation: its regions and running feature sums, and in a
+    median step the previous step's [R, D] unit features ``centre`` with ε ``softness``."""
 
     level: int
     region_of: Tensor
     sizes: Tensor
     out: Tensor
+    centre: Tensor | None = None
+    softness: float = 0.0
 
 
 def _shares_view(
@@ -323,7 +367,7 @@ def _shares_view(
         shares = _fraction(shares, shares.sum(dim=1, keepdim=True))
         shares = torch.where(shares < config.min_share, 0.0, shares)
         masks_features = features[low : low + shares.shape[1]]
-        _accumulate(level.out, shares, masks_features, _fraction(seen, level.sizes))
+        _accumulate(level, shares, masks_features, _fraction(seen, level.sizes))
 
 
 def _centres_view(
@@ -351,7 +395,7 @@ def _centres_view(
         if pooled is None:
             continue
         table, low = pooled
-        _accumulate(level.out, table, features[low : low + table.shape[1]], portion)
+        _accumulate(level, table, features[low : low + table.shape[1]], portion)
 
 
 def level_features(
@@ -408,28 +452,37 @@ def level_features(
         accumulations.append(_Level(level, region_of, sizes, out))
     if config.mode == "centres":
         means = means.to(device)
-    for i, (view, masks) in enumerate(zip(lifted, guidance)):
-        if len(view) == 0 or len(masks.features) == 0:
-            continue
-        seen, max_weights, view_labels = view.gaussians.long(), view.max_weights, view.labels
-        if inside is not None:
-            keep = inside[seen]
-            seen, max_weights, view_labels = seen[keep], max_weights[keep], view_labels[keep]
-        features = torch.from_numpy(masks.features).to(device=device, dtype=torch.float64)
-        if config.mode == "shares":
-            _shares_view(accumulations, seen, max_weights, view_labels, features, config)
-        else:
-            segments = torch.from_numpy(masks.segments).to(device)
-            camera = cameras.select([i])
-            _centres_view(
-                accumulations, seen, max_weights, features, means, camera, segments, config
-            )
+    for step in range(config.median_steps + 1):
+        if step > 0:
+            accumulations = [
+                replace(
+                    accumulation,
+                    out=torch.zeros_like(accumulation.out),
+                    centre=_normalized(accumulation.out),
+                    softness=config.median_softness,
+                )
+                for accumulation in accumulations
+            ]
+        for i, (view, masks) in enumerate(zip(lifted, guidance)):
+            if len(view) == 0 or len(masks.features) == 0:
+                continue
+            seen, max_weights, view_labels = view.gaussians.long(), view.max_weights, view.labels
+            if inside is not None:
+                keep = inside[seen]
+                seen, max_weights, view_labels = seen[keep], max_weights[keep], view_labels[keep]
+            features = torch.from_numpy(masks.features).to(device=device, dtype=torch.float64)
+            if config.mode == "shares":
+                _shares_view(accumulations, seen, max_weights, view_labels, features, config)
+            else:
+                segments = torch.from_numpy(masks.segments).to(device)
+                camera = cameras.select([i])
+                _centres_view(
+                    accumulations, seen, max_weights, features, means, camera, segments, config
+                )
     results = []
     for accumulation in accumulations:
-        out = accumulation.out
-        norms = torch.linalg.vector_norm(out, dim=1)
-        seen_rows = norms > 0
-        out[seen_rows] /= norms[seen_rows, None]
+        out = _normalized(accumulation.out)
+        seen_rows = torch.linalg.vector_norm(out, dim=1) > 0
         results.append((out.float().cpu().numpy(), seen_rows.cpu().numpy()))
         logger.info(
             "region features (%s) at level %d: %d of %d regions seen in %d views",

@@ -388,9 +388,10 @@ class FieldConfig:
         """The same numbers with the authors' behaviour where ours differs: absolute vote
         offsets, edge weights against the reweighted mean, the reference's merging (every
         label votes with weight 1, 2-hop members count, one round per pass:
-        :meth:`thgs.hierarchy.MergeConfig.as_reference`), its features (every labelled
-        Gaussian counts once: :meth:`thgs.features.FeatureConfig.as_reference`) and one part
-        per connected piece (no grouping of repeated parts)."""
+        :meth:`thgs.hierarchy.MergeConfig.as_reference`), its features (the weighted mean
+        over views, every labelled Gaussian counting once:
+        :meth:`thgs.features.FeatureConfig.as_reference`) and one part per connected piece (no
+        grouping of repeated parts)."""
         return replace(
             self,
             superpoints=self.superpoints.as_reference(),
@@ -481,6 +482,7 @@ _BEFORE_RECORDED = {
     ("merge", "split_incoherent"): False,
     ("superpoints", "partition", "split_alternatives"): 2,
     ("superpoints", "partition", "polish"): False,
+    ("features", "median_steps"): 0,
 }
 """Settings added after fields were first recorded, with the value every earlier build used."""
 
