@@ -64,7 +64,8 @@ def feature_accuracy(regions: np.ndarray, truth: np.ndarray, features, names, en
 
 
 def _variants(args: argparse.Namespace) -> dict[str, tuple[FieldConfig, torch.device]]:
-    """ "ours" on every asked backend and device present, and the authors' behaviour once."""
+    """ "ours" on the ``--runs`` pairs, or on every asked backend and device present, and the
+    authors' behaviour once unless ``--no-reference``."""
     if args.runs:
         pairs = [run.split(":", 1) for run in args.runs]
         if any(len(pair) != 2 for pair in pairs):

@@ -398,6 +398,33 @@ def _centres_view(
         _accumulate(level, table, features[low : low + table.shape[1]], portion)
 
 
+def _pool_views(
+    levels: list[_Level],
+    lifted: Sequence[ViewLift],
+    guidance: Sequence[ViewGuidance],
+    config: FeatureConfig,
+    inside: Tensor | None,
+    means: Tensor | None,
+    cameras: Cameras | None,
+) -> None:
+    """One pass over the views, adding each view's unit vectors into ``levels``' sums."""
+    device = lifted[0].device
+    for i, (view, masks) in enumerate(zip(lifted, guidance)):
+        if len(view) == 0 or len(masks.features) == 0:
+            continue
+        seen, max_weights, view_labels = view.gaussians.long(), view.max_weights, view.labels
+        if inside is not None:
+            keep = inside[seen]
+            seen, max_weights, view_labels = seen[keep], max_weights[keep], view_labels[keep]
+        features = torch.from_numpy(masks.features).to(device=device, dtype=torch.float64)
+        if config.mode == "shares":
+            _shares_view(levels, seen, max_weights, view_labels, features, config)
+        else:
+            segments = torch.from_numpy(masks.segments).to(device)
+            camera = cameras.select([i])
+            _centres_view(levels, seen, max_weights, features, means, camera, segments, config)
+
+
 def level_features(
     labels: np.ndarray,
     levels: Sequence[int],
@@ -450,35 +477,19 @@ def level_features(
         sizes = torch.bincount(kept, minlength=count).double()
         out = torch.zeros((count, dim), dtype=torch.float64, device=device)
         accumulations.append(_Level(level, region_of, sizes, out))
-    if config.mode == "centres":
-        means = means.to(device)
-    for step in range(config.median_steps + 1):
-        if step > 0:
-            accumulations = [
-                replace(
-                    accumulation,
-                    out=torch.zeros_like(accumulation.out),
-                    centre=_normalized(accumulation.out),
-                    softness=config.median_softness,
-                )
-                for accumulation in accumulations
-            ]
-        for i, (view, masks) in enumerate(zip(lifted, guidance)):
-            if len(view) == 0 or len(masks.features) == 0:
-                continue
-            seen, max_weights, view_labels = view.gaussians.long(), view.max_weights, view.labels
-            if inside is not None:
-                keep = inside[seen]
-                seen, max_weights, view_labels = seen[keep], max_weights[keep], view_labels[keep]
-            features = torch.from_numpy(masks.features).to(device=device, dtype=torch.float64)
-            if config.mode == "shares":
-                _shares_view(accumulations, seen, max_weights, view_labels, features, config)
-            else:
-                segments = torch.from_numpy(masks.segments).to(device)
-                camera = cameras.select([i])
-                _centres_view(
-                    accumulations, seen, max_weights, features, means, camera, segments, config
-                )
+    means = means.to(device) if config.mode == "centres" else None
+    _pool_views(accumulations, lifted, guidance, config, inside, means, cameras)
+    for _ in range(config.median_steps):
+        accumulations = [
+            replace(
+                accumulation,
+                out=torch.zeros_like(accumulation.out),
+                centre=_normalized(accumulation.out),
+                softness=config.median_softness,
+            )
+            for accumulation in accumulations
+        ]
+        _pool_views(accumulations, lifted, guidance, config, inside, means, cameras)
     results = []
     for accumulation in accumulations:
         out = _normalized(accumulation.out)
