@@ -1,11 +1,12 @@
 """Fit and check the calibrated confidences of query answers (thgs.confidence, docs/query.md).
 
-    .venv/bin/python benchmarks/bench_confidence.py --fit-seeds 0 1 2 3 4 --report-seeds 5 6 7 8 9
+    .venv/bin/python benchmarks/bench_confidence.py --fit-seeds 0 1 2 --report-seeds 5 6 7
 
-Cells are synth-small datasets (seed × Gaussian kind × mask-fault severity × the oracle's context
-mix), written and built as in ``bench_selection.py`` (cached in ``--out``). Every name in a
-scene's ground truth (objects, parts, sub-parts) is asked, and 12 phrases naming nothing there.
-Each selectable region of levels 1–3 is scored z = (cosine − μ) / σ against the scene's null
+Cells are synth-small scenes (seed × Gaussian kind × mask-fault severity × CLIP stand-in, a
+``kind/severity/stand-in`` spec such as ``3dgs/0.5/clip-like``), built as in
+``bench_selection.py`` (its :class:`Scene`, kept in ``--out``). Every name in a scene's ground
+truth (objects, parts, sub-parts) is asked, and 12 phrases naming nothing there. Each selectable
+region of levels 1–3 is scored z = (cosine − μ) / σ on centred cosines against the scene's null
 (:meth:`thgs.query.FieldQuery.null_model`) and labelled *belongs* when the query names something
 in the scene and at least half of the region's Gaussians lie in it; each query's best score is
 labelled *present* when the query names something in the scene. Logistic regressions (L2 weight
@@ -19,9 +20,7 @@ regions and for presence, and the share of named queries whose selection (automa
 from __future__ import annotations
 
 import argparse
-import hashlib
 import itertools
-import json
 import sys
 from pathlib import Path
 
@@ -32,27 +31,21 @@ from scipy.stats import rankdata
 
 sys.path.insert(0, str(Path(__file__).parent))
 
-from bench_selection import NONSENSE, scenario
+from bench_selection import NONSENSE, Scene
 
 from thgs.confidence import presence_confidence, region_confidence
 from thgs.eval.ground_truth import read_hierarchy
-from thgs.field import load_field
+from thgs.pipeline import FieldConfig
 from thgs.query import FieldQuery
-from thgs.text import load_text_encoder
+from thgs.text import MiniLMEncoder
 
 
-def records(out: Path, seed: int, kind: str, severity: float, mix: float) -> dict[str, list]:
+def records(scene: Scene, spec: str) -> dict[str, list]:
     """Region scores and labels, query best scores and labels, and named queries' 3-D IoU of
-    the automatic selection, in query order (cached next to the cell's field, keyed by the
-    field's bytes)."""
-    dataset, field_path = scenario(out, seed, kind, severity, mix)
-    cache = Path(f"{dataset}.confidence.json")
-    digest = hashlib.sha256(field_path.read_bytes()).hexdigest()
-    if cache.is_file() and (cached := json.loads(cache.read_text()))["field"] == digest:
-        return cached["rows"]
-    field = load_field(field_path)
-    truth = read_hierarchy(dataset / "ground_truth.safetensors")
-    engine = FieldQuery(field, load_text_encoder(field.space))
+    the automatic selection, in query order."""
+    regions = scene.regions(spec)
+    truth = read_hierarchy(scene.folder / "ground_truth.safetensors")
+    engine = FieldQuery(regions, scene.encoder)
     named: dict[str, np.ndarray] = {}
     for level in (1, 2, 3):
         names = truth.level_names(level)
@@ -65,10 +58,12 @@ def records(out: Path, seed: int, kind: str, severity: float, mix: float) -> dic
         inside = named.get(text)
         best = -np.inf
         for level in (1, 2, 3):
-            z = null.score(engine.similarity([text], level)[0])
-            sizes = field.levels.sizes(level)
-            for region in np.flatnonzero(field.seen[level - 1] & (sizes >= engine.min_gaussians)):
-                share = inside[field.labels[:, level] == region].mean() if inside is not None else 0
+            z = null.score(engine.centred_similarity([text], level)[0])
+            sizes = regions.sizes(level)
+            for region in np.flatnonzero(regions.seen[level - 1] & (sizes >= engine.min_gaussians)):
+                share = (
+                    inside[regions.labels[:, level] == region].mean() if inside is not None else 0
+                )
                 rows["region"].append(z[region])
                 rows["belongs"].append(share >= 0.5)
                 best = max(best, z[region])
@@ -78,9 +73,7 @@ def records(out: Path, seed: int, kind: str, severity: float, mix: float) -> dic
             selection = engine.select([text])[0]
             overlap = (inside & selection.gaussians).sum() / (inside | selection.gaussians).sum()
             rows["iou"].append(float(overlap))
-    rows = {key: np.asarray(values).tolist() for key, values in rows.items()}
-    cache.write_text(json.dumps({"field": digest, "rows": rows}))
-    return rows
+    return {key: np.asarray(values).tolist() for key, values in rows.items()}
 
 
 def logistic_fit(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
@@ -118,30 +111,35 @@ def report(name: str, p: np.ndarray, y: np.ndarray) -> None:
     )
 
 
-def cells(spec: list[str], seeds: list[int]) -> list[tuple]:
-    """(seed, kind, severity, mix) for every seed and ``kind:severity:mix`` cell."""
-    parsed = [(kind, float(sev), float(mix)) for kind, sev, mix in (c.split(":") for c in spec)]
-    return [(seed, *c) for seed, c in itertools.product(seeds, parsed)]
+def cells(specs: list[str], seeds: list[int]) -> list[tuple]:
+    """(seed, kind, severity, stand-in) for every seed and ``kind/severity/stand-in`` cell."""
+    parsed = [spec.split("/", 2) for spec in specs]
+    return [(seed, k, float(s), stand) for seed, (k, s, stand) in itertools.product(seeds, parsed)]
 
 
 def gather(out: Path, todo: list[tuple]) -> dict[str, np.ndarray]:
+    encoder, config = MiniLMEncoder(), FieldConfig.lerf()
     rows: dict[str, list] = {}
-    for seed, kind, severity, mix in todo:
-        for key, values in records(out, seed, kind, severity, mix).items():
+    for seed, kind, severity, spec in todo:
+        scene = Scene(out, seed, kind, severity, encoder, config)
+        for key, values in records(scene, spec).items():
             rows.setdefault(key, []).extend(values)
-        print(f"cell seed {seed} {kind} severity {severity:g} context {mix:g}", flush=True)
+        print(f"cell seed {seed} {kind} severity {severity:g} {spec}", flush=True)
     return {key: np.array(values) for key, values in rows.items()}
 
 
 def main() -> None:
     grid = [
-        f"{k}:{s:g}:{m:g}" for k, s, m in itertools.product(("2dgs", "3dgs"), (0, 0.5, 1), (0, 0.5))
+        f"{k}/{s:g}/{m}"
+        for k, s, m in itertools.product(
+            ("2dgs", "3dgs"), (0, 0.5, 1), ("name-perfect", "clip-like")
+        )
     ]
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--fit-seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
-    parser.add_argument("--report-seeds", type=int, nargs="+", default=[5, 6, 7, 8, 9])
-    parser.add_argument("--fit-cells", nargs="+", default=grid, help="kind:severity:mix")
-    parser.add_argument("--report-cells", nargs="+", default=grid, help="kind:severity:mix")
+    parser.add_argument("--fit-seeds", type=int, nargs="+", default=[0, 1, 2])
+    parser.add_argument("--report-seeds", type=int, nargs="+", default=[5, 6, 7])
+    parser.add_argument("--fit-cells", nargs="+", default=grid, help="kind/severity/stand-in")
+    parser.add_argument("--report-cells", nargs="+", default=grid, help="kind/severity/stand-in")
     parser.add_argument("--out", type=Path, default=Path("/tmp/thgs-bench-selection"))
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)

@@ -417,16 +417,16 @@ def test_eval_refuses_a_dataset_without_ground_truth(small_field, tmp_path, caps
 def test_bench_compares_variants_on_a_reduced_scene(tmp_path, capsys):
     out = tmp_path / "bench"
     argv = ["bench", "-o", str(out), "--presets", "synth-small", "--gaussians", "3000"]
-    argv += ["--views", "6", "--cache", str(tmp_path / "cache"), "--context-mixes", "0.5"]
+    argv += ["--views", "6", "--cache", str(tmp_path / "cache"), "--clip-like"]
     argv += ["--variants", "full", "no progressive merging", "instance level only", "exact lifting"]
     code, stdout, err = run(argv, capsys)
     assert code == 0, err
     assert "Paper orderings" in stdout and "Selection across scenarios" in stdout
-    assert (tmp_path / "cache" / "synth-small-seed0-3000g-6v-context0.5").is_dir()
+    assert (tmp_path / "cache" / "synth-small-seed0-3000g-6v-clip-like").is_dir()
     report = json.loads((out / "bench.json").read_text())
     runs = {entry["variant"]: entry for entry in report["runs"]}
-    assert {(e["kind"], e["severity"], e["context_mix"]) for e in report["runs"]} == {
-        ("2dgs", 0.5, 0.5)
+    assert {(e["kind"], e["severity"], e["stand_in"]) for e in report["runs"]} == {
+        ("2dgs", 0.5, "clip-like")
     }
     (cell,) = report["selection"]
     assert cell["lerf miou"] == runs["full"]["quality"]["lerf miou"]
@@ -836,7 +836,8 @@ def test_ctrl_c_during_bench_leaves_no_report_and_no_half_dataset(
         monkeypatch.setattr(thgs.bench, "build_levels", interrupted)
     out, cache = tmp_path / "out", tmp_path / "cache"
     argv = ["bench", "-o", str(out), "--presets", "synth-small", "--gaussians", "2000"]
-    argv += ["--views", "4", "--context-mixes", "0", "--variants", "full", "--cache", str(cache)]
+    argv += ["--views", "4", "--stand-ins", "name-perfect", "--variants", "full"]
+    argv += ["--cache", str(cache)]
     code, _, err = run(argv, capsys)
     assert code == 130 and err.strip().splitlines()[-1] == "error: interrupted", err
     assert not out.exists()
@@ -880,7 +881,7 @@ def test_ctrl_c_while_bench_writes_its_report_leaves_none_of_it(
 
     run_ = VariantRun(
         preset="synth-small", seed=0, variant="full", kind="2dgs", severity=0.5,
-        context_mix=0.0, gaussians=2000, views=4, stages={"lift": 1.5, "partition": 0.5},
+        stand_in="name-perfect", gaussians=2000, views=4, stages={"lift": 1.5, "partition": 0.5},
         lift_shared=False, seconds=2.0, peak_gib=0.5, gpu_peak_gib=None,
         region_counts=(60, 40, 20, 10), quality={"lerf miou": 0.6, "lerf-paper miou": 0.5},
         evaluation_seconds=1.0,

@@ -50,12 +50,12 @@ def test_built_ins_in_report_order():
         "lerf-opengaussian",
         "3dovs",
         "scannet",
+        "openhype",
         "hierarchy",
     )
-    assert registry.source_names() == ("lerf", "three_dovs", "scannet", "hierarchy")
-    assert [registry.get_protocol(n).needs_cameras for n in protocol_names()] == [True] * 4 + [
-        False
-    ] * 2
+    assert registry.source_names() == ("lerf", "three_dovs", "scannet", "openhype", "hierarchy")
+    needs_cameras = [registry.get_protocol(n).needs_cameras for n in protocol_names()]
+    assert needs_cameras == [True, True, True, True, False, True, False]
 
 
 def test_sources_find_a_synthetic_datasets_ground_truth(small_dataset):
@@ -66,7 +66,7 @@ def test_sources_find_a_synthetic_datasets_ground_truth(small_dataset):
         "scannet": small_dataset / "scannet" / "synthetic_vh_clean_2.labels.ply",
         "hierarchy": small_dataset / "ground_truth.safetensors",
     }
-    assert found.available() == protocol_names()
+    assert found.available() == tuple(name for name in protocol_names() if name != "openhype")
     with pytest.raises(InputError, match="unknown kind 'labels'"):
         find_ground_truth(small_dataset, labels=small_dataset)
 
@@ -99,7 +99,8 @@ def test_a_registered_protocol_runs_everywhere(toy, small_dataset, small_field, 
     bench = BenchReport(
         runs=(
             VariantRun(
-                preset="p", seed=0, variant="full", kind="2dgs", severity=0.5, context_mix=0.0,
+                preset="p", seed=0, variant="full", kind="2dgs", severity=0.5,
+                stand_in="name-perfect",
                 gaussians=1, views=1, stages={"lift": 1.0},
                 lift_shared=False, seconds=1.0, peak_gib=0.1, gpu_peak_gib=None,
                 region_counts=(1, 1, 1, 1), quality={"toy share": 0.25}, evaluation_seconds=0.0,

@@ -144,6 +144,9 @@ def test_paper_mode_always_selects_something():
         {"threshold": 1.5},
         {"min_gaussians": -1},
         {"temperature": 0.0},
+        {"descend": -0.1},
+        {"siblings": 1.5},
+        {"min_score": float("nan")},
     ],
 )
 def test_invalid_query_configs_are_refused(changes):
@@ -294,9 +297,8 @@ def test_a_field_without_features_says_why_nothing_is_selected(mode):
     # every seen region too small to be selected: that is said instead
     small = FieldQuery(_field(), _encoder(), QueryConfig(mode=mode, min_gaussians=5))
     assert "lower --min-gaussians" in small.select(["red"])[0].reason
-    assert (
-        FieldQuery(_field(), _encoder(), QueryConfig(mode=mode)).select(["red"])[0].reason is None
-    )
+    plain = QueryConfig(mode=mode, threshold=0.5 if mode in ("auto", "threshold") else None)
+    assert FieldQuery(_field(), _encoder(), plain).select(["red"])[0].reason is None
 
 
 def test_unselectable_reason_by_hand():
@@ -327,10 +329,12 @@ def test_small_region_size_reads_the_recorded_merge_settings(caplog):
     assert "field config: merge" in caplog.text and "min_region_gaussians" in caplog.text
 
 
-def test_auto_mode_takes_every_region_named_like_the_query_or_abstains():
+def test_the_flat_auto_rule_takes_every_region_named_like_the_query_or_abstains():
     field, encoder = _field(), _encoder()
-    fq = FieldQuery(field, encoder)  # auto is the default
-    assert fq.config.mode == "auto" and fq.config.searched_levels == (1, 2, 3)
+    assert QueryConfig().mode == "auto" and QueryConfig().searched_levels == (1, 2, 3)
+    # the rule before the hierarchy: raw cosines, every region past the cut, relevancy 0.8
+    flat = QueryConfig(hierarchical=False, centred=False, threshold=0.8)
+    fq = FieldQuery(field, encoder, flat)
     # cosines with "red": levels 1 and 2 [1, 0.981, 0, unseen], level 3 [0.995, 0]; the median
     # of the 8 seen regions is 0.981, so the cut is 1 − 0.15 · (1 − 0.981) ≈ 0.997
     red = fq.select(["red"])[0]
@@ -362,6 +366,130 @@ def test_auto_mode_takes_every_region_named_like_the_query_or_abstains():
         select({1: np.ones(2)}, QueryConfig(levels=(1,)))
     with pytest.raises(InputError, match=r"extent"):
         QueryConfig(extent=1.0).check()
+
+
+def _tree():
+    """Objects 0 (parts 0, 1), 1 (part 2), 2 (part 3), 3 (part 4); part 0 holds sub-parts 0 and
+    1, part 1 sub-part 2, parts 2–4 sub-parts 3–5: ``parents`` as RegionLevels gives them."""
+    return (np.array([0, 0, 1, 2, 3, 4]), np.array([0, 0, 1, 2, 3]))
+
+
+def _cosines(sub, part, obj):
+    """Level → cosines; the regions of objects 1–3 are background (cosine 0)."""
+    return {
+        1: np.array([*sub, 0.0, 0.0, 0.0]),
+        2: np.array([*part, 0, 0, 0]),
+        3: np.array([obj, 0, 0, 0]),
+    }
+
+
+def _auto(cosines, **options):
+    every = {k: np.arange(len(c)) for k, c in cosines.items()}
+    scores = {k: np.full(len(c), 0.9) for k, c in cosines.items()}
+    choice = select_auto(scores, cosines, every, 0.15, 0.5, parents=_tree(), **options)
+    return [r[:2] for r in choice.regions]
+
+
+def test_the_hierarchical_rule_by_hand():
+    # 15 regions, 9 of them background at 0: the median is 0, the spread the best cosine, the
+    # cut best − 0.15 · best, the margin 0.05 · best
+    # a part named by the query: object 0 (0.6) is short of the cut (0.782) and part 0's
+    # sub-part 0 rises 0.32 above it; part 1 rises nothing (best 0.5): left out. Part 0 (0.9)
+    # is past the cut and sub-part 0 rises only 0.02 above it (margin 0.046): part 0 whole
+    named_part = _cosines((0.92, 0.88, 0.5), (0.9, 0.5), 0.6)
+    assert _auto(named_part) == [(2, 0)]
+    # the flat rule takes part 0 and both its sub-parts (the same Gaussians) and nothing else
+    flat = select_auto(
+        {k: np.full(len(c), 0.9) for k, c in named_part.items()},
+        named_part,
+        {k: np.arange(len(c)) for k, c in named_part.items()},
+    )
+    assert [r[:2] for r in flat.regions] == [(1, 0), (2, 0), (1, 1)]
+    # the object named: past the cut, nothing inside rises above it: the object whole
+    assert _auto(_cosines((0.8, 0.8, 0.85), (0.9, 0.85), 0.95)) == [(3, 0)]
+    # the object is past the cut (0.85 ≥ 0.8075) but part 0 rises 0.1 above it (margin 0.0475):
+    # the query is about part 0; part 1 (0.84, below the object) is not followed
+    about_part = _cosines((0.9, 0.9, 0.84), (0.95, 0.84), 0.85)
+    assert _auto(about_part) == [(2, 0)]
+    # two parts both rise well above their object (0.4 and 0.35 ≥ 0.6 · 0.4): both followed,
+    # both past the cut (0.765): both taken
+    assert _auto(_cosines((0.85, 0.85, 0.8), (0.9, 0.85), 0.5)) == [(2, 0), (2, 1)]
+    # ... but with siblings 0.9 only the best (0.35 < 0.9 · 0.4)
+    assert _auto(_cosines((0.85, 0.85, 0.8), (0.9, 0.85), 0.5), siblings=0.9) == [(2, 0)]
+    # a region that may not be chosen (unseen, small) is passed through: part 0 out, its
+    # sub-parts judged on their own
+    every = {1: np.arange(6), 2: np.array([1, 2, 3, 4]), 3: np.arange(4)}
+    cosines = _cosines((0.92, 0.88, 0.5), (0.9, 0.5), 0.6)
+    scores = {k: np.full(len(c), 0.9) for k, c in cosines.items()}
+    choice = select_auto(scores, cosines, every, 0.15, 0.5, parents=_tree())
+    assert [r[:2] for r in choice.regions] == [(1, 0), (1, 1)]
+
+
+def test_a_nested_field_is_searched_by_the_hierarchy():
+    field, encoder = _field(), _encoder()
+    # "pinkish" (1, 0.2, 0): part 1 (features (1, 0.2, 0)) is the query itself (cosine 1),
+    # object 0 (1, 0.1, 0) is close (0.9955), part 0 (1, 0, 0) less (0.981); the median of the
+    # 8 seen regions is 0.981, so with extent 0.9 the cut is 0.983: the flat rule takes part 1
+    # and object 0 (Gaussians 0-3); the hierarchical one sees part 1 rise 0.0045 above object 0
+    # (margin 0.05 · 0.019) and takes part 1 alone (Gaussians 2, 3)
+    raw = QueryConfig(centred=False, threshold=0.5, extent=0.9)
+    hierarchical = FieldQuery(field, encoder, raw).select(["pinkish"])[0]
+    flat = FieldQuery(field, encoder, replace(raw, hierarchical=False)).select(["pinkish"])[0]
+    np.testing.assert_array_equal(flat.gaussians, [1, 1, 1, 1, 0, 0, 0, 0])
+    assert [r[:2] for r in hierarchical.regions] == [(2, 1)]  # its sub-part is the same
+    np.testing.assert_array_equal(hierarchical.gaussians, [0, 0, 1, 1, 0, 0, 0, 0])
+
+
+def test_centred_cosines_by_hand():
+    field, encoder = _field(), _encoder()
+    fq = FieldQuery(field, encoder, QueryConfig(min_gaussians=0))
+    seen = np.concatenate([f[s] for f, s in zip(field.features, field.seen)]).astype(np.float64)
+    centre = seen.mean(axis=0)
+    for level in (1, 2, 3):
+        moved = field.features[level - 1].astype(np.float64) - centre
+        unit = moved / np.linalg.norm(moved, axis=1, keepdims=True)
+        expected = np.where(field.seen[level - 1], unit @ _unit(1, 0, 0), 0.0)
+        np.testing.assert_allclose(fq.centred_similarity(["red"], level)[0], expected)
+    # a direction every feature shares is gone: features pulled towards one direction (as CLIP's
+    # image embeddings are) and renormalized read almost as before, while raw cosines shrink
+    shared = _unit(0.3, -0.2, 1)
+    pulled = tuple(
+        np.where(s[:, None], (0.3 * f + 0.7 * shared), 0).astype(np.float32)
+        for f, s in zip(field.features, field.seen)
+    )
+    pulled = tuple(
+        np.where(s[:, None], f / np.maximum(np.linalg.norm(f, axis=1, keepdims=True), 1e-12), 0)
+        for f, s in zip(pulled, field.seen)
+    )
+    moved = FieldQuery(
+        replace(field, features=pulled).check(), encoder, QueryConfig(min_gaussians=0)
+    )
+    for level in (1, 2, 3):
+        before = fq.centred_similarity(["red"], level)[0]
+        after = moved.centred_similarity(["red"], level)[0]
+        raw = moved.similarity(["red"], level)[0]
+        assert np.corrcoef(before, after)[0, 1] > 0.99
+        seen = field.seen[level - 1]
+        assert np.ptp(raw[seen]) < 0.5 * np.ptp(fq.similarity(["red"], level)[0][seen])
+
+
+def test_auto_abstains_below_the_scene_null():
+    field, encoder = _field(), _encoder()
+    fq = FieldQuery(field, encoder, QueryConfig(min_gaussians=0))
+    null = fq.null_model(centred=True)
+    best = max(float(fq.centred_similarity(["red"], k)[0].max()) for k in (1, 2, 3))
+    score = float(null.score(best))
+    kept = fq.select(["red"], fq.with_config(min_score=score - 0.01))[0]
+    assert not kept.empty and kept.reason is None
+    dropped = fq.select(["red"], fq.with_config(min_score=score + 0.01))[0]
+    assert dropped.empty and not dropped.gaussians.any()
+    assert dropped.reason == (
+        f"nothing relevant to 'red': the best region is {score:.2f} standard deviations above "
+        f"what ordinary names reach in this scene, below the {score + 0.01:.2f} needed"
+    )
+    # a threshold given: the relevancy decides instead
+    relevant = fq.select(["red"], fq.with_config(min_score=score + 0.01, threshold=0.5))[0]
+    assert not relevant.empty
 
 
 def test_select_auto_by_hand():
@@ -403,15 +531,25 @@ def test_confidences_are_the_stated_logistic_curves():
 def test_confidence_matches_a_brute_force_computation():
     field, encoder = _field(), _encoder()
     fq = FieldQuery(field, encoder, QueryConfig(min_gaussians=0))
-    # the null by hand: every seen region of levels 1-3, each generic phrase's best cosine
+    # the null by hand: every seen region of levels 1-3, its feature centred on their mean and
+    # made unit again, each generic phrase's best cosine
     generic = encoder.encode(list(NULL_PHRASES)).astype(np.float64)
     seen = [field.features[k][field.seen[k]].astype(np.float64) for k in range(3)]
+    centre = np.concatenate(seen).mean(axis=0)
+
+    def centred(features):
+        moved = features.astype(np.float64) - centre
+        return moved / np.linalg.norm(moved, axis=1, keepdims=True)
+
+    seen = [centred(features) for features in seen]
     best = np.max(generic @ np.concatenate(seen).T, axis=1)
     null = fq.null_model()
     assert null.mean == pytest.approx(best.mean()) and null.std == pytest.approx(best.std())
+    raw = np.max(generic @ np.concatenate([f[s] for f, s in zip(field.features, field.seen)]).T, 1)
+    assert fq.null_model(centred=False).mean == pytest.approx(raw.mean())
     for text, vector in (("red", _unit(1, 0, 0)), ("nothing", _unit(0, 0, -1))):
         for level in (1, 2, 3):
-            cosine = field.features[level - 1].astype(np.float64) @ vector
+            cosine = centred(field.features[level - 1]) @ vector
             expected = np.where(
                 field.seen[level - 1], region_confidence((cosine - best.mean()) / best.std()), 0
             )

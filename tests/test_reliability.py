@@ -18,6 +18,12 @@ from hypothesis import strategies as st
 from conftest import random_cameras
 from thgs.errors import InputError
 from thgs.eval.lerf_ovs import read_lerf_labels
+from thgs.eval.openhype import (
+    OpenHypeFrame,
+    OpenHypeObject,
+    read_openhype_frame,
+    write_openhype_annotations,
+)
 from thgs.field import load_field
 from thgs.guidance.langsplat import read_view_guidance
 from thgs.scene import (
@@ -196,3 +202,39 @@ def test_damaged_guidance_files(small_dataset, tmp_path, data):
         flat[index] = value
         np.save(path, flat.reshape(array.shape).astype(data.draw(st.sampled_from(["f4", "f8"]))))
     _check(lambda p: read_view_guidance(p.parent, stem), path, name)
+
+
+@pytest.fixture
+def openhype_folder(tmp_path_factory) -> Path:
+    """One OpenHype annotation file with an object and a part prompt and their masks."""
+    folder = tmp_path_factory.mktemp("openhype") / "gt"
+    masks = np.zeros((2, 6, 8), dtype=bool)
+    masks[0, :3], masks[1, 3:, :2] = True, True
+    objects = (
+        OpenHypeObject("chair", False, masks[0], np.array([[0.0, 0.0, 7.0, 2.0]]), "m/00.png"),
+        OpenHypeObject("leg of a chair", True, masks[1], np.array([[0.0, 3, 1, 5]]), "m/01.png"),
+    )
+    K = np.array([[8.0, 0.0, 4.0], [0.0, 8.0, 3.0], [0.0, 0.0, 1.0]])
+    frame = OpenHypeFrame("DSC00001", "DSC00001.JPG", 8, 6, K, np.eye(4), "PINHOLE", objects)
+    write_openhype_annotations(folder, [frame])
+    return folder
+
+
+@SETTINGS
+@given(data=st.data())
+def test_damaged_openhype_annotations(openhype_folder, tmp_path, data):
+    folder = tmp_path / "gt"
+    shutil.rmtree(folder, ignore_errors=True)
+    shutil.copytree(openhype_folder, folder)
+    path = folder / "DSC00001.json"
+    kind = data.draw(st.sampled_from(["mutated", "damaged", "mask"]))
+    if kind == "mutated":
+        path.write_text(data.draw(_json_mutations(json.loads(path.read_text()))))
+    elif kind == "damaged":
+        path.write_bytes(data.draw(damaged(path.read_bytes())))
+    else:
+        mask = folder / "m" / data.draw(st.sampled_from(["00.png", "01.png"]))
+        mask.write_bytes(data.draw(damaged(mask.read_bytes())))
+        _check(read_openhype_frame, path, "gt/")
+        return
+    _check(read_openhype_frame, path, "DSC00001.json")

@@ -37,6 +37,7 @@ from thgs.synthetic import (
     is_current_dataset,
     label_categories,
     render_view,
+    stand_in,
     write_dataset,
 )
 from thgs.synthetic.dataset import SCANNET_LABELS, _class_masks
@@ -212,6 +213,12 @@ def test_cli_synth_writes_a_loadable_dataset(tmp_path, capsys, encoder):
     scene = load_scene(out)
     assert len(scene.gaussians) == 4000 and len(scene.cameras) == 2
     assert json.loads((out / "synthetic.json").read_text())["oracle"]["context_mix"] == 0.25
+    clip = tmp_path / "clip"
+    entrypoint([*argv[:2], str(clip), *argv[3:], "--clip-like", "--surroundings", "0.3"])
+    recorded = json.loads((clip / "synthetic.json").read_text())["oracle"]
+    assert {key: recorded[key] for key in stand_in("clip-like")} == stand_in(
+        "clip-like:surroundings=0.3"
+    )
     with pytest.raises(SystemExit) as exit_info:
         entrypoint(["synth", "synth-small", str(out), "--gaussians", "4000", "--views", "2"])
     assert exit_info.value.code == 2
@@ -411,6 +418,27 @@ def test_evaluation_views_are_never_silently_fewer():
         (["--severity", "-1"], "--severity: must be a number ≥ 0, got -1.0"),
         (["--feature-noise", "nan"], "--feature-noise: must be a number ≥ 0, got nan"),
         (["--context-mix", "2"], "--context-mix: must be in [0, 1], got 2.0"),
+        (["--surroundings", "1.5"], "--surroundings: must be in [0, 1], got 1.5"),
+        (["--confusion", "0.6"], "--confusion: must be in [0, 0.5], got 0.6"),
+        (["--compression", "1"], "--compression: must be in [0, 1), got 1.0"),
+        (["--part-drift", "-0.2"], "--part-drift: must be in [0, 1], got -0.2"),
+        (
+            ["--stand-in", "clip"],
+            "--stand-in: unknown 'clip' in 'clip'; choose from name-perfect, clip-like",
+        ),
+        (
+            ["--stand-in", "clip-like:parent_drift=1.2"],
+            "--stand-in: 'clip-like:parent_drift=1.2': subpart_drift must be in [0, 1], got 1.2",
+        ),
+        (
+            ["--clip-like", "--context-mix", "0.8"],
+            "--context-mix: is the older single knob and is not combined with subpart_drift, "
+            "part_drift, surroundings or confusion; set it alone",
+        ),
+        (
+            ["--clip-like", "--stand-in", "name-perfect:context_mix=0.5"],
+            "--clip-like: is --stand-in clip-like; --stand-in name-perfect:context_mix=0.5 too",
+        ),
         (
             ["--views", "4", "--evaluation-views", "10"],
             "--evaluation-views: 10 evaluation views asked of a scene with 4 views; give at most 4",

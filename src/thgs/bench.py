@@ -44,6 +44,7 @@ from thgs.export import write_json
 from thgs.lift import LiftConfig
 from thgs.pipeline import FieldConfig, build_levels, lift_scene
 from thgs.query import FieldQuery, Regions
+from thgs.synthetic.oracle import stand_in
 from thgs.synthetic.scene import PRESETS
 from thgs.text import MINILM_SPACE, load_text_encoder
 
@@ -151,9 +152,10 @@ class BenchConfig:
         seeds: scene and oracle seeds; every (preset, seed, scenario) is one scene.
         kinds: Gaussian kinds of the scenes (``"2dgs"``, ``"3dgs"``).
         severities: the oracle's mask-fault severities (0 clean … 1 heavy).
-        context_mixes: the oracle's CLIP-likeness (:attr:`thgs.synthetic.OracleConfig.
-            context_mix`): 0 name-perfect features, 0.5 half the parent's and surroundings'
-            names; every setting is a scenario, so no rule is judged on clean features only.
+        stand_ins: how CLIP-like the oracle's features are (:func:`thgs.synthetic.stand_in`
+            specs): ``name-perfect``, ``clip-like`` (the default pair), the grid around it
+            (:data:`thgs.synthetic.CLIP_GRID`) or any spec; every one is a scenario, so no
+            rule is judged on name-perfect features only.
         variants: names from :data:`VARIANTS`.
         gaussians, views: override the presets' sizes (quick runs).
         cache: where the synthetic datasets are kept (default :func:`thgs.demo.default_cache`).
@@ -167,7 +169,7 @@ class BenchConfig:
     seeds: tuple[int, ...] = (0,)
     kinds: tuple[str, ...] = ("2dgs",)
     severities: tuple[float, ...] = (0.5,)
-    context_mixes: tuple[float, ...] = (0.0, 0.5)
+    stand_ins: tuple[str, ...] = ("name-perfect", "clip-like")
     variants: tuple[str, ...] = tuple(VARIANTS)
     gaussians: int | None = None
     views: int | None = None
@@ -184,22 +186,24 @@ class BenchConfig:
                 raise InputError("variants", f"unknown {name!r}; choose from {', '.join(VARIANTS)}")
         if not self.presets or not self.variants or not self.seeds:
             raise InputError("BenchConfig", "needs at least one preset, seed and variant")
-        if not self.kinds or not self.severities or not self.context_mixes:
-            raise InputError("BenchConfig", "needs at least one kind, severity and context mix")
+        if not self.kinds or not self.severities or not self.stand_ins:
+            raise InputError("BenchConfig", "needs at least one kind, severity and stand-in")
         for kind in self.kinds:
             if kind not in ("2dgs", "3dgs"):
                 raise InputError("kinds", f"must be 2dgs or 3dgs, got {kind!r}")
         for value in self.severities:
             if value < 0:
                 raise InputError("severities", f"must be ≥ 0, got {value}")
-        for value in self.context_mixes:
-            if not 0.0 <= value <= 1.0:
-                raise InputError("context_mixes", f"must be in [0, 1], got {value}")
+        for spec in self.stand_ins:
+            try:
+                stand_in(spec)
+            except InputError as error:
+                raise InputError("stand_ins", error.problem) from error
         return self
 
-    def scenarios(self) -> list[tuple[str, float, float]]:
-        """Every (kind, severity, context mix) to build each preset and seed in."""
-        return list(itertools.product(self.kinds, self.severities, self.context_mixes))
+    def scenarios(self) -> list[tuple[str, float, str]]:
+        """Every (kind, severity, stand-in) to build each preset and seed in."""
+        return list(itertools.product(self.kinds, self.severities, self.stand_ins))
 
 
 @dataclass(frozen=True)
@@ -208,7 +212,7 @@ class VariantRun:
 
     Attributes:
         preset, seed, variant: what was built.
-        kind, severity, context_mix: the scene's scenario (:attr:`BenchConfig.scenarios`).
+        kind, severity, stand_in: the scene's scenario (:attr:`BenchConfig.scenarios`).
         gaussians, views: scene size.
         stages: seconds per stage, ``lift`` first (see :func:`thgs.pipeline.build_field`).
         lift_shared: the lifting was run once and shared with other variants of this scene.
@@ -225,7 +229,7 @@ class VariantRun:
     variant: str
     kind: str
     severity: float
-    context_mix: float
+    stand_in: str
     gaussians: int
     views: int
     stages: dict[str, float]
@@ -284,13 +288,13 @@ def _quality(report) -> dict[str, float]:
 def _bench_scene(
     preset: str,
     seed: int,
-    scenario: tuple[str, float, float],
+    scenario: tuple[str, float, str],
     config: BenchConfig,
     encoder,
     progress: Progress | None,
 ) -> list[VariantRun]:
     cache = config.cache if config.cache is not None else default_cache()
-    kind, severity, context_mix = scenario
+    kind, severity, spec = scenario
     folder, _ = synthetic_dataset(
         cache,
         preset,
@@ -301,7 +305,7 @@ def _bench_scene(
         progress,
         kind=kind,
         severity=severity,
-        context_mix=context_mix,
+        stand_in=spec,
     )
     scene, guidance = open_synthetic_dataset(folder, encoder)
     scene = scene.to(resolve_device(config.device))
@@ -318,7 +322,7 @@ def _bench_scene(
             lift_groups.append((variant.superpoints.lift, [name]))
 
     runs = []
-    tag = f"{preset} seed {seed} {kind} severity {severity:g} context {context_mix:g}"
+    tag = f"{preset} seed {seed} {kind} severity {severity:g} {spec}"
     for lift, names in lift_groups:
         lifted, _, lift_peak, lift_gpu = measured(
             lambda lift=lift: lift_scene(scene, guidance, lift, cache=config.lift_cache)
@@ -355,7 +359,7 @@ def _bench_scene(
                     variant=name,
                     kind=kind,
                     severity=severity,
-                    context_mix=context_mix,
+                    stand_in=spec,
                     gaussians=len(scene.gaussians),
                     views=len(scene.cameras),
                     stages=stages,
@@ -451,21 +455,21 @@ class BenchReport:
         return checks
 
     def selection_cells(self, variant: str = "full") -> list[dict[str, Any]]:
-        """Per (preset, kind, severity, context mix), the means over seeds of ``variant``'s
+        """Per (preset, kind, severity, stand-in), the means over seeds of ``variant``'s
         LERF mIoU under the automatic selection (``lerf``) and the paper's (``lerf-paper``),
         and its 3D-OVS mIoU: the selection rule measured across scenarios."""
-        cells: dict[tuple[str, str, float, float], list[VariantRun]] = {}
+        cells: dict[tuple[str, str, float, str], list[VariantRun]] = {}
         for run in self.runs:
             if run.variant == variant:
-                key = (run.preset, run.kind, run.severity, run.context_mix)
+                key = (run.preset, run.kind, run.severity, run.stand_in)
                 cells.setdefault(key, []).append(run)
         rows = []
-        for (preset, kind, severity, context_mix), group in cells.items():
+        for (preset, kind, severity, spec), group in cells.items():
             row: dict[str, Any] = {
                 "preset": preset,
                 "kind": kind,
                 "severity": severity,
-                "context_mix": context_mix,
+                "stand_in": spec,
                 "seeds": len(group),
             }
             for key in ("lerf miou", "lerf-paper miou", "3dovs miou"):
@@ -502,8 +506,8 @@ class BenchReport:
             f"{self.machine['torch_threads']}, CUDA: {self.machine['cuda'] or 'none'}. "
             f"Means over {seeds} seed(s) and every scenario (kinds "
             f"{', '.join(self.config.get('kinds', ('2dgs',)))}, severities "
-            f"{', '.join(f'{v:g}' for v in self.config.get('severities', (0.5,)))}, context mixes "
-            f"{', '.join(f'{v:g}' for v in self.config.get('context_mixes', (0.0,)))}).",
+            f"{', '.join(f'{v:g}' for v in self.config.get('severities', (0.5,)))}, stand-ins "
+            f"{', '.join(self.config.get('stand_ins', ('name-perfect',)))}).",
             "",
             "| preset | variant | total s | lift s | partition s | merge s | features s "
             "| peak GiB | regions L0 / L1 / L2 / L3 |",
@@ -544,13 +548,13 @@ class BenchReport:
                 "Selection across scenarios (full method; LERF mIoU, THGS protocol; means over "
                 "seeds):",
                 "",
-                "| preset | kind | severity | context mix | automatic | paper's | 3dovs |",
+                "| preset | kind | severity | stand-in | automatic | paper's | 3dovs |",
                 "|---|---|---|---|---|---|---|",
             ]
             for cell in cells:
                 lines.append(
                     f"| {cell['preset']} | {cell['kind']} | {cell['severity']:g} "
-                    f"| {cell['context_mix']:g} | {cell['lerf miou']:.3f} "
+                    f"| {cell['stand_in']} | {cell['lerf miou']:.3f} "
                     f"| {cell['lerf-paper miou']:.3f} | {cell['3dovs miou']:.3f} |"
                 )
             auto = [cell["lerf miou"] for cell in cells]

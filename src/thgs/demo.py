@@ -45,6 +45,7 @@ from thgs.synthetic import (
     generate_scene,
     is_current_dataset,
     preset,
+    stand_in_spec,
     write_dataset,
 )
 from thgs.text import MINILM_SPACE, TextEncoder, load_text_encoder
@@ -240,14 +241,18 @@ def synthetic_dataset(
     *,
     kind: str = "2dgs",
     severity: float = 0.5,
-    context_mix: float = 0.0,
+    stand_in: str = "name-perfect",
 ) -> tuple[Path, bool]:
     """The synthetic dataset of ``name`` (a preset) and ``seed`` in ``cache``, written there
     with oracle guidance in ``encoder``'s space if it is not yet: ``(folder, generated now)``.
 
     ``gaussians`` and ``views`` override the preset's size; ``kind`` (2dgs, 3dgs), the oracle's
-    mask ``severity`` and its ``context_mix`` (:class:`thgs.synthetic.OracleConfig`) choose the
-    scenario. The folder name says every value that is not the default.
+    mask ``severity`` and its CLIP stand-in (a :func:`thgs.synthetic.stand_in` spec, e.g.
+    ``"clip-like"``) choose the scenario. The folder name says every value that is not the
+    default.
+
+    Raises:
+        InputError: a bad stand-in spec (before anything is written).
     """
     overrides: dict[str, object] = {"seed": seed}
     tag = f"{name}-seed{seed}"
@@ -262,8 +267,10 @@ def synthetic_dataset(
         tag += f"-{kind}"
     if severity != 0.5:
         tag += f"-severity{severity:g}"
-    if context_mix != 0.0:
-        tag += f"-context{context_mix:g}"
+    oracle = OracleConfig(severity=severity, seed=seed).with_stand_in(stand_in)
+    spec = stand_in_spec(oracle)
+    if spec != "name-perfect":
+        tag += "-" + spec.replace(":", "-").replace(",", "-").replace("=", "")
     folder = cache / tag
     if is_current_dataset(folder):
         logger.info("reusing the cached dataset %s", folder)
@@ -274,7 +281,7 @@ def synthetic_dataset(
         folder,
         scene,
         encoder,
-        oracle=OracleConfig(severity=severity, context_mix=context_mix, seed=seed),
+        oracle=oracle,
         config=DatasetConfig(),
         overwrite=folder.exists(),
         progress=None if progress is None else lambda d, t: progress("generate", d, t),

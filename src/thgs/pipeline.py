@@ -54,13 +54,16 @@ __all__ = [
     "BuiltLevels",
     "FieldConfig",
     "LiftedScene",
+    "MergedLevels",
     "PartitionReport",
     "PosedScene",
     "SuperpointConfig",
     "build_field",
     "build_levels",
+    "describe_levels",
     "lift_scene",
     "lifted_raster",
+    "merge_lifted",
     "partition_lifted",
     "partition_scene",
     "read_field_config",
@@ -591,28 +594,47 @@ def _regrouped_part_features(
     return out_features, out_seen
 
 
-def build_levels(
-    lifted: LiftedScene,
-    guidance: Sequence[ViewGuidance],
-    config: FieldConfig = FieldConfig(),
-    *,
-    progress: Progress | None = None,
-) -> BuiltLevels:
-    """Graph → reweight → partition → merge → features on views lifted by :func:`lift_scene`.
+@dataclass(frozen=True, eq=False)
+class MergedLevels:
+    """Regions at levels 0–3 before their features (:func:`merge_lifted`): everything of a
+    build that depends on the masks alone, so fields whose guidance differs only in its
+    features share it (:func:`describe_levels`).
 
-    Every merge mode is allowed here, ``independent`` included (its levels need not nest).
-
-    Raises:
-        InputError: ``lifted`` was made with other lifting settings than ``config``'s, or the
-            guidance has no feature dimension.
+    Attributes:
+        levels: the regions (:class:`thgs.hierarchy.RegionLevels`) before repeated parts are
+            grouped (grouping reads the part features).
+        neighbors: [N, k] each Gaussian's nearest Gaussians (the merging's adjacency), shared
+            with the grouping of repeated parts.
+        timings: wall time per stage (lifting excluded).
     """
+
+    levels: RegionLevels
+    neighbors: np.ndarray
+    timings: dict[str, float]
+
+
+def _check_lifted(lifted: LiftedScene, config: FieldConfig) -> None:
     if lifted.config != config.superpoints.lift:
         raise InputError(
             "lifted",
             "was lifted with other settings than config.superpoints.lift; lift again "
             "(thgs.pipeline.lift_scene) with the config's",
         )
-    _check_features(guidance)
+
+
+def merge_lifted(
+    lifted: LiftedScene,
+    config: FieldConfig = FieldConfig(),
+    *,
+    progress: Progress | None = None,
+) -> MergedLevels:
+    """Graph → reweight → partition → merge on views lifted by :func:`lift_scene` (the first
+    half of :func:`build_levels`).
+
+    Raises:
+        InputError: ``lifted`` was made with other lifting settings than ``config``'s.
+    """
+    _check_lifted(lifted, config)
 
     def stage(name: str, done: int) -> None:
         if progress is not None:
@@ -629,38 +651,88 @@ def build_levels(
     neighbors = gaussian_neighbors(gaussians, config.merge.neighbors)
     adjacency_seconds = time.perf_counter() - started
     merge = merge_levels(gaussians, superpoints, lifted.lifted, config.merge, neighbors=neighbors)
-    merged = merge.levels
     merge_seconds = {**merge.seconds}
     merge_seconds["adjacency"] = adjacency_seconds  # the shared neighbours, computed here
     stage("merge", 1)
-    stage("features", 0)
-    started = time.perf_counter()
-    features = _features(merged.labels, (1, 2, 3), lifted, guidance, config.features)
-    feature_seconds = time.perf_counter() - started
-    if config.repeats.enabled and config.merge.mode == "progressive":
-        started = time.perf_counter()
-        before = merged.labels[:, 2]
-        shared = neighbors if config.repeats.neighbors == config.merge.neighbors else None
-        merged = group_repeated_parts(
-            gaussians, merged, features[1][0], config.repeats, neighbors=shared
-        )
-        merge_seconds["repeats"] = time.perf_counter() - started
-        started = time.perf_counter()
-        features[1] = _regrouped_part_features(
-            before, merged.labels[:, 2], features[1], lifted, guidance, config.features
-        )
-        feature_seconds += time.perf_counter() - started
-    stage("features", 1)
     for name, seconds in merge_seconds.items():
         logger.info("merge %s: %.2f s", name, seconds)
+    return MergedLevels(merge.levels, neighbors, {**report.seconds, **merge_seconds})
+
+
+def describe_levels(
+    merged: MergedLevels,
+    lifted: LiftedScene,
+    guidance: Sequence[ViewGuidance],
+    config: FieldConfig = FieldConfig(),
+    *,
+    progress: Progress | None = None,
+) -> BuiltLevels:
+    """Region features, then repeated parts grouped (the second half of :func:`build_levels`):
+    ``merged`` must come from :func:`merge_lifted` on ``lifted`` with ``config``, and
+    ``guidance`` may differ from the guidance lifted in its features only (the masks are what
+    was lifted).
+
+    Raises:
+        InputError: ``lifted`` was made with other lifting settings than ``config``'s, the
+            guidance has no feature dimension, or another number of views than was lifted.
+    """
+    _check_lifted(lifted, config)
+    _check_features(guidance)
+    if len(guidance) != len(lifted.lifted):
+        raise InputError("guidance", f"has {len(guidance)} views, {len(lifted.lifted)} lifted")
+    if progress is not None:
+        progress("features", 0, 1)
+    started = time.perf_counter()
+    levels = merged.levels
+    features = _features(levels.labels, (1, 2, 3), lifted, guidance, config.features)
+    feature_seconds = time.perf_counter() - started
+    timings = dict(merged.timings)
+    if config.repeats.enabled and config.merge.mode == "progressive":
+        started = time.perf_counter()
+        before = levels.labels[:, 2]
+        shared = merged.neighbors if config.repeats.neighbors == config.merge.neighbors else None
+        levels = group_repeated_parts(
+            lifted.gaussians, levels, features[1][0], config.repeats, neighbors=shared
+        )
+        timings["repeats"] = time.perf_counter() - started
+        logger.info("merge repeats: %.2f s", timings["repeats"])
+        started = time.perf_counter()
+        features[1] = _regrouped_part_features(
+            before, levels.labels[:, 2], features[1], lifted, guidance, config.features
+        )
+        feature_seconds += time.perf_counter() - started
+    if progress is not None:
+        progress("features", 1, 1)
     logger.info("features: %.2f s", feature_seconds)
     features_of, seen_of = zip(*features)
     return BuiltLevels(
-        levels=merged,
+        levels=levels,
         features=features_of,
         seen=seen_of,
-        timings={**report.seconds, **merge_seconds, "features": feature_seconds},
+        timings={**timings, "features": feature_seconds},
     )
+
+
+def build_levels(
+    lifted: LiftedScene,
+    guidance: Sequence[ViewGuidance],
+    config: FieldConfig = FieldConfig(),
+    *,
+    progress: Progress | None = None,
+) -> BuiltLevels:
+    """Graph → reweight → partition → merge → features on views lifted by :func:`lift_scene`
+    (:func:`merge_lifted`, then :func:`describe_levels`).
+
+    Every merge mode is allowed here, ``independent`` included (its levels need not nest).
+
+    Raises:
+        InputError: ``lifted`` was made with other lifting settings than ``config``'s, or the
+            guidance has no feature dimension.
+    """
+    _check_lifted(lifted, config)
+    _check_features(guidance)
+    merged = merge_lifted(lifted, config, progress=progress)
+    return describe_levels(merged, lifted, guidance, config, progress=progress)
 
 
 def build_field(

@@ -11,13 +11,19 @@ have no feature and score 0, so they are never selected.
 
 Four ways to turn relevancies into a selection (:class:`QueryConfig`):
 
-- ``auto`` (the default) — decided from the query's own scores, with no per-scene setting:
-  abstain when no region at levels 1–3 reaches the space's relevancy threshold
-  (:func:`default_threshold`; the selection says why); otherwise take every region, at any
-  level, whose feature is about as close to the query as the closest one, measured against the
-  query's spread over the scene: cosine ≥ best − ``extent`` · (best − median) (``extent``
-  0.15). One part, an object split over several regions, a table's four legs, two mugs: all the
-  regions named like the query, at the level where they are so named (docs/query.md).
+- ``auto`` (the default) — decided from the query's own scores and the hierarchy, with no
+  per-scene setting (:func:`select_auto`, docs/query.md). Cosines are read on features centred
+  on the scene's mean feature, which removes what every region shares (CLIP's image embeddings
+  share one direction) and makes them comparable across embedding spaces. Abstain when the
+  best region is no closer to the query than ordinary names get to this scene (its cosine
+  ``min_score`` standard deviations above the null of :data:`thgs.confidence.NULL_PHRASES`;
+  the selection says why). Otherwise descend the hierarchy from every object: a region at
+  least as close as ``best − extent · (best − median)`` is taken whole unless a region inside
+  it is closer by more than ``descend`` of that spread — then the query is about a part of it,
+  and the descent goes on into the children that come near the best one. One part, an object
+  split over several regions, a table's four legs, two mugs: the regions named like the query,
+  at the level where they are so named, and not the object around a part that only looks
+  like it.
 - ``paper`` — the paper's evaluation: the 3 most relevant regions of level 2 and the 3 of
   level 3 are pooled, the 3 best of those six are kept, no threshold. Something is always
   selected, even for a query about nothing in the scene.
@@ -147,13 +153,28 @@ class QueryConfig:
         per_level: paper mode: regions taken from each pooled level (3).
         keep: paper mode: regions kept from the pool by relevancy (3).
         extent: auto mode: how far below the best region's cosine, as a share of the best's
-            lead over the median region, a region may be and still be selected (0.15, chosen on
-            synthetic seeds 0–4; docs/query.md).
+            lead over the median region (the query's spread), a region may be and still be
+            selected (0.15, chosen on synthetic seeds 0–4; docs/query.md).
+        hierarchical: auto mode: judge each region against the regions inside it (descend
+            from the objects, :func:`select_auto`); False selects every region past the cut
+            wherever it is, as thgs did before (nested fields only; others are always flat).
+        descend: auto mode: a region past the cut is taken whole unless a region inside it is
+            closer to the query by more than this share of the spread.
+        siblings: auto mode: when the descent goes into a region's children, those whose best
+            cosine (their own or inside them) rises above the region's by at least this share
+            of the best child's rise are followed; the others are left out.
+        centred: auto mode: read cosines on features centred on the mean feature of the
+            scene's selectable regions (renormalized), not on the raw features.
+        min_score: auto mode: the query is abstained from when its best region's score, the
+            cosine's distance above the scene's null in units of the null's spread (the best
+            cosines of the generic :data:`thgs.confidence.NULL_PHRASES`, read the same way), is
+            below this. Used when ``threshold`` is None; a scene without a null falls back to
+            the space's relevancy threshold.
         level: level and threshold modes: the level searched (1 sub-parts, 2 parts, 3 objects).
         top: level mode: how many regions (1).
-        threshold: threshold mode: the relevancy a region needs; auto mode: the relevancy the
-            best region needs, or the query is abstained from; None: :func:`default_threshold`
-            of the field's space.
+        threshold: threshold mode: the relevancy a region needs (None:
+            :func:`default_threshold` of the field's space); auto mode: if given, the relevancy
+            the best region needs, or the query is abstained from, instead of ``min_score``.
         min_gaussians: regions with fewer Gaussians are never selected (0: all may be); None:
             the field's small-region size (``config["merge"]["min_region_gaussians"]``, 20 for
             the LERF preset, 0 if the field does not say). Leftover specks that merging could
@@ -167,6 +188,11 @@ class QueryConfig:
     per_level: int = 3
     keep: int = 3
     extent: float = 0.15
+    hierarchical: bool = True
+    descend: float = 0.05
+    siblings: float = 0.6
+    centred: bool = True
+    min_score: float = 1.2
     level: int = 3
     top: int = 1
     threshold: float | None = None
@@ -197,6 +223,12 @@ class QueryConfig:
             raise InputError("QueryConfig.temperature", f"must be > 0, got {self.temperature}")
         if not 0.0 <= self.extent < 1.0:
             raise InputError("QueryConfig.extent", f"must be in [0, 1), got {self.extent}")
+        if not 0.0 <= self.descend:
+            raise InputError("QueryConfig.descend", f"must be ≥ 0, got {self.descend}")
+        if not 0.0 <= self.siblings <= 1.0:
+            raise InputError("QueryConfig.siblings", f"must be in [0, 1], got {self.siblings}")
+        if not np.isfinite(self.min_score):
+            raise InputError("QueryConfig.min_score", f"must be a number, got {self.min_score}")
         return self
 
     @property
@@ -278,6 +310,7 @@ def select(
     allowed: dict[int, np.ndarray] | None = None,
     threshold: float = 0.5,
     similarities: dict[int, np.ndarray] | None = None,
+    parents: Sequence[np.ndarray] | None = None,
 ) -> tuple[tuple[int, int, float], ...]:
     """Choose regions of one query from its relevancies.
 
@@ -285,9 +318,11 @@ def select(
         scores: level → [R_level] relevancies, for every level in ``config.searched_levels``.
         config: the selection mode and its settings.
         allowed: level → [R_level] bool, the regions that may be chosen (default: all).
-        threshold: threshold and auto modes' relevancy, used when ``config.threshold`` is None.
+        threshold: threshold and auto modes' relevancy, used when ``config.threshold`` is None
+            (auto mode here always abstains by relevancy: the null is :class:`FieldQuery`'s).
         similarities: auto mode: level → [R_level] cosine of each region's feature with the
             query (required there).
+        parents: auto mode: the nesting of levels 1–3 (:func:`select_auto`); None: flat.
 
     Returns:
         ``(level, region, relevancy)``, most relevant first (auto: closest first); ties go to
@@ -303,7 +338,16 @@ def select(
     if config.mode == "auto":
         if similarities is None:
             raise InputError("select", "auto mode needs the regions' cosine similarities")
-        return select_auto(scores, similarities, candidates, config.extent, cut).regions
+        return select_auto(
+            scores,
+            similarities,
+            candidates,
+            config.extent,
+            cut,
+            parents=parents if config.hierarchical else None,
+            descend=config.descend,
+            siblings=config.siblings,
+        ).regions
     if config.mode == "paper":
         pool = []
         for level in config.searched_levels:
@@ -327,10 +371,59 @@ class AutoChoice:
     Attributes:
         regions: ``(level, region, relevancy)``, closest by cosine first; empty when abstaining.
         best_relevancy: the highest relevancy among the candidates (0 when there are none).
+        best_score: the best candidate's score against the scene's null (None when the
+            relevancy decided, or there is no candidate).
     """
 
     regions: tuple[tuple[int, int, float], ...]
     best_relevancy: float
+    best_score: float | None = None
+
+
+def _children(parents: Sequence[np.ndarray]) -> dict[tuple[int, int], np.ndarray]:
+    """(level, region) → [C] its child regions, for levels 2 and 3; ``parents[0]`` maps level 1
+    to level 2, ``parents[1]`` level 2 to level 3."""
+    children = {}
+    for level, upward in ((2, parents[0]), (3, parents[1])):
+        order = np.argsort(upward, kind="stable")
+        bounds = np.searchsorted(upward[order], np.arange(int(upward.max(initial=-1)) + 2))
+        for region in range(len(bounds) - 1):
+            children[(level, region)] = order[bounds[region] : bounds[region + 1]]
+    return children
+
+
+def _descend(
+    own: dict[int, np.ndarray],
+    parents: Sequence[np.ndarray],
+    cut: float,
+    margin: float,
+    siblings: float,
+) -> list[tuple[int, int]]:
+    """The hierarchical choice of :func:`select_auto` (module docstring); ``own`` holds each
+    region's cosine, −inf where it may not be chosen."""
+    inside = {1: np.full(len(own[1]), -np.inf)}  # best cosine strictly inside each region
+    for level, upward in ((2, parents[0]), (3, parents[1])):
+        below = np.maximum(own[level - 1], inside[level - 1])
+        inside[level] = np.full(len(own[level]), -np.inf)
+        np.maximum.at(inside[level], upward, below)
+    children = _children(parents)
+    chosen: list[tuple[int, int]] = []
+    stack = [(3, int(region)) for region in range(len(own[3]))][::-1]
+    while stack:
+        level, region = stack.pop()
+        value, best_inside = own[level][region], inside[level][region]
+        rise = best_inside - value if np.isfinite(value) and np.isfinite(best_inside) else 0.0
+        if value >= cut and not rise > margin:
+            chosen.append((level, region))
+            continue
+        if level == 1:
+            continue
+        kids = children.get((level, region), np.zeros(0, dtype=np.int64))
+        if rise > margin:  # the query is about something inside it
+            best = np.maximum(own[level - 1][kids], inside[level - 1][kids])
+            kids = kids[best - value >= siblings * rise]
+        stack.extend((level - 1, int(kid)) for kid in kids[::-1])
+    return chosen
 
 
 def select_auto(
@@ -339,35 +432,79 @@ def select_auto(
     candidates: dict[int, np.ndarray],
     extent: float = 0.15,
     threshold: float = 0.5,
+    *,
+    parents: Sequence[np.ndarray] | None = None,
+    descend: float = 0.05,
+    siblings: float = 0.6,
+    null: NullModel | None = None,
+    min_score: float = 1.2,
 ) -> AutoChoice:
     """The automatic selection of one query (module docstring, docs/query.md).
 
+    With ``best`` the highest cosine among the candidates and ``median`` their median, the cut
+    is ``best − extent · (best − median)``. Without ``parents`` every candidate past the cut is
+    chosen. With them, the descent starts at every level-3 region: a candidate past the cut is
+    chosen whole unless a candidate inside it has a cosine higher than its own by more than
+    ``descend · (best − median)``; otherwise (or when it is no candidate, or short of the cut)
+    the descent goes on into its children, and where something inside it rose that far, only
+    into the children whose best cosine (their own or inside them) rises above its own by at
+    least ``siblings`` times that rise.
+
     Args:
-        scores: level → [R_level] relevancies.
-        similarities: level → [R_level] cosines of the regions' features with the query.
+        scores: level → [R_level] relevancies (reported with each chosen region).
+        similarities: level → [R_level] cosines of the regions' features with the query (the
+            centred ones where the caller centres).
         candidates: level → [C_level] ids of the regions that may be chosen (seen, not small).
         extent: share of the best's lead over the median a region may fall short by.
-        threshold: the relevancy the best candidate needs, or the query is abstained from.
+        threshold: the relevancy the best candidate needs when ``null`` is None.
+        parents: the nesting, for levels 1–3: ``parents[0]`` [R_1] the level-2 region of each
+            level-1 region, ``parents[1]`` [R_2] the level-3 region of each level-2 region
+            (:attr:`thgs.hierarchy.RegionLevels.parents` [1:]); None: the flat rule.
+        descend: share of the spread a region inside a candidate must rise above it by for the
+            candidate not to be taken whole.
+        siblings: share of the best child's rise a child must reach to be descended into.
+        null: the scene's null of the same cosines; with it, the query is abstained from when
+            the best candidate's score is below ``min_score`` (else the relevancy rule).
+        min_score: see ``null``.
     """
     pairs = [(level, int(region)) for level, ids in candidates.items() for region in ids]
     best_relevancy = max((float(scores[level][region]) for level, region in pairs), default=0.0)
-    if not pairs or best_relevancy < threshold:
+    if not pairs:
         return AutoChoice((), best_relevancy)
     cosines = np.array([similarities[level][region] for level, region in pairs])
     best, median = float(cosines.max()), float(np.median(cosines))
-    cut = best - extent * (best - median)
-    chosen = sorted(
-        (-float(cosine), level, region)
-        for (level, region), cosine in zip(pairs, cosines)
-        if cosine >= cut
-    )
-    regions = tuple((level, region, float(scores[level][region])) for _, level, region in chosen)
-    return AutoChoice(regions, best_relevancy)
+    best_score = None
+    if null is not None:
+        best_score = float(null.score(best))
+        if best_score < min_score:
+            return AutoChoice((), best_relevancy, best_score)
+    elif best_relevancy < threshold:
+        return AutoChoice((), best_relevancy)
+    spread = best - median
+    cut = best - extent * spread
+    if parents is None:
+        picked = [(level, region) for (level, region), c in zip(pairs, cosines) if c >= cut]
+    else:
+        objects = max(int(parents[1].max(initial=-1)) + 1, len(similarities.get(3, ())))
+        sizes = {1: len(parents[0]), 2: len(parents[1]), 3: objects}
+        own = {level: np.full(size, -np.inf) for level, size in sizes.items()}
+        for (level, region), cosine in zip(pairs, cosines):
+            own[level][region] = cosine
+        picked = _descend(own, parents, cut, descend * spread, siblings)
+    order = sorted((-float(similarities[level][region]), level, region) for level, region in picked)
+    regions = tuple((level, region, float(scores[level][region])) for _, level, region in order)
+    return AutoChoice(regions, best_relevancy, best_score)
 
 
-def abstain_reason(text: str, best: float, threshold: float) -> str:
-    """Why auto mode selected nothing for ``text``: its best region's relevancy ``best`` is
-    below ``threshold``."""
+def abstain_reason(text: str, best: float, threshold: float, *, score: bool = False) -> str:
+    """Why auto mode selected nothing for ``text``: its best region's relevancy (``score``
+    False) or score against the scene's null (``score`` True), ``best``, is below
+    ``threshold``."""
+    if score:
+        return (
+            f"nothing relevant to {text!r}: the best region is {best:.2f} standard deviations "
+            f"above what ordinary names reach in this scene, below the {threshold:.2f} needed"
+        )
     return (
         f"nothing relevant to {text!r}: the best region scores {best:.3f}, below the "
         f"{threshold:.3f} a region needs (relevancy against 'object', 'things', 'stuff', "
@@ -533,7 +670,8 @@ class FieldQuery:
         self._sizes = {k: regions.sizes(k) for k in (1, 2, 3)}
         self._members = {k: _Members(regions.labels[:, k], len(self._sizes[k])) for k in (1, 2, 3)}
         self._results: OrderedDict[tuple[str, QueryConfig], Selection] = OrderedDict()
-        self._nulls: dict[int, NullModel | None] = {}
+        self._nulls: dict[tuple[int, bool], NullModel | None] = {}
+        self._centred: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
 
     def embed(self, texts: Sequence[str]) -> np.ndarray:
         """[Q, D] float64 unit embeddings of ``texts`` (encoded once per distinct text)."""
@@ -563,6 +701,36 @@ class FieldQuery:
         level = self.regions.checked_level(level)
         features = self.regions.features[level - 1].astype(np.float64)
         return self.embed(texts) @ features.T
+
+    def centred_similarity(
+        self, texts: Sequence[str], level: int, min_gaussians: int | None = None
+    ) -> np.ndarray:
+        """[Q, R_level] cosine of every level-``level`` region's centred feature with every
+        text: each feature minus the mean feature of the selectable regions of levels 1–3 (seen,
+        at least ``min_gaussians`` Gaussians; None: the field's small-region size), made unit
+        again (0 for unseen regions). What every region shares (CLIP's image embeddings share
+        one direction that its text embeddings lack) no longer decides the cosines."""
+        level = self.regions.checked_level(level)
+        smallest = self.min_gaussians if min_gaussians is None else min_gaussians
+        return self.embed(texts) @ self._centred_features(smallest)[level - 1].T
+
+    def _centred_features(self, smallest: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        if smallest not in self._centred:
+            features = [f.astype(np.float64) for f in self.regions.features]
+            selectable = [
+                features[k - 1][self.regions.seen[k - 1] & (self._sizes[k] >= smallest)]
+                for k in (1, 2, 3)
+            ]
+            pooled = np.concatenate(selectable)
+            centre = pooled.mean(axis=0) if len(pooled) else np.zeros(self.regions.dim)
+            centred = []
+            for k in (1, 2, 3):
+                moved = features[k - 1] - centre
+                norms = np.linalg.norm(moved, axis=1, keepdims=True)
+                unit = np.divide(moved, norms, out=np.zeros_like(moved), where=norms > 0)
+                centred.append(np.where(self.regions.seen[k - 1][:, None], unit, 0.0))
+            self._centred[smallest] = tuple(centred)  # type: ignore[assignment]
+        return self._centred[smallest]
 
     def gaussian_relevancy(self, text: str, level: int, temperature: float = 10.0) -> np.ndarray:
         """[N] float64: each Gaussian carries its level-``level`` region's relevancy for
@@ -599,10 +767,20 @@ class FieldQuery:
             scores = {
                 k: self.relevancy(todo, k, config.temperature) for k in config.searched_levels
             }
-            cosines = {k: self.similarity(todo, k) for k in (1, 2, 3)}
+            cosines = {k: self.centred_similarity(todo, k, smallest) for k in (1, 2, 3)}
             null = self.null_model(smallest)
             presence = self._presence(cosines, smallest, null)
             cut = config.threshold if config.threshold is not None else self.threshold
+            if config.mode == "auto":
+                read = (
+                    cosines if config.centred else {k: self.similarity(todo, k) for k in (1, 2, 3)}
+                )
+                judge = None
+                if config.threshold is None:
+                    judge = self.null_model(smallest, centred=config.centred)
+                parents = None
+                if config.hierarchical and self.regions.levels.nested:
+                    parents = self.regions.levels.parents[1:]  # type: ignore[index]
             unselectable = unselectable_reason(
                 {k: self.regions.seen[k - 1] for k in config.searched_levels}, allowed
             )
@@ -613,13 +791,22 @@ class FieldQuery:
                 elif config.mode == "auto":
                     choice = select_auto(
                         {k: s[q] for k, s in scores.items()},
-                        {k: c[q] for k, c in cosines.items()},
+                        {k: c[q] for k, c in read.items()},
                         {k: np.flatnonzero(allowed[k] & (s[q] > 0)) for k, s in scores.items()},
                         config.extent,
                         cut,
+                        parents=parents,
+                        descend=config.descend,
+                        siblings=config.siblings,
+                        null=judge,
+                        min_score=config.min_score,
                     )
                     regions = choice.regions
-                    if not regions:
+                    if not regions and choice.best_score is not None:
+                        reason = abstain_reason(
+                            text, choice.best_score, config.min_score, score=True
+                        )
+                    elif not regions:
                         reason = abstain_reason(text, choice.best_relevancy, cut)
                 else:
                     regions = select(
@@ -648,37 +835,46 @@ class FieldQuery:
                 )
         return [self._results[(text, config)] for text in texts]
 
-    def null_model(self, min_gaussians: int | None = None) -> NullModel | None:
+    def null_model(
+        self, min_gaussians: int | None = None, *, centred: bool = True
+    ) -> NullModel | None:
         """The scene's null (:class:`thgs.confidence.NullModel`): how well the generic
         :data:`thgs.confidence.NULL_PHRASES` match the regions of levels 1–3 that are seen and
-        have at least ``min_gaussians`` Gaussians (None: the field's small-region size). None
-        when no region qualifies or every phrase matches equally well (no spread to measure
-        against)."""
+        have at least ``min_gaussians`` Gaussians (None: the field's small-region size), by
+        their centred cosines (:meth:`centred_similarity`; what confidences and the automatic
+        selection read) or, with ``centred`` False, their raw ones. None when no region
+        qualifies or every phrase matches equally well (no spread to measure against)."""
         smallest = self.min_gaussians if min_gaussians is None else min_gaussians
-        if smallest not in self._nulls:
-            cosines = self._selectable_cosines(
-                {k: self.similarity(NULL_PHRASES, k) for k in (1, 2, 3)}, smallest
+        if (smallest, centred) not in self._nulls:
+            similarity = (
+                (lambda k: self.centred_similarity(NULL_PHRASES, k, smallest))
+                if centred
+                else (lambda k: self.similarity(NULL_PHRASES, k))
             )
-            degenerate = cosines.size == 0 or not cosines.max(axis=1).std() > 0
-            self._nulls[smallest] = None if degenerate else NullModel.from_similarities(cosines)
-        return self._nulls[smallest]
+            cosines = self._selectable_cosines({k: similarity(k) for k in (1, 2, 3)}, smallest)
+            degenerate = cosines.size == 0 or not cosines.max(axis=1).std() > 1e-9
+            self._nulls[(smallest, centred)] = (
+                None if degenerate else NullModel.from_similarities(cosines)
+            )
+        return self._nulls[(smallest, centred)]
 
     def confidence(
         self, texts: Sequence[str], level: int, min_gaussians: int | None = None
     ) -> np.ndarray:
         """[Q, R_level] the calibrated probability that each level-``level`` region belongs to
         what each text names (:func:`thgs.confidence.region_confidence`; 0 for unseen regions;
-        NaN when the scene has no null, see :meth:`null_model`)."""
+        NaN when the scene has no null, see :meth:`null_model`), from the centred cosines."""
         level = self.regions.checked_level(level)
         null = self.null_model(min_gaussians)
-        return self._region_confidence(self.similarity(texts, level), level, null)
+        cosines = self.centred_similarity(texts, level, min_gaussians)
+        return self._region_confidence(cosines, level, null)
 
     def presence(self, texts: Sequence[str], min_gaussians: int | None = None) -> np.ndarray:
         """[Q] the calibrated probability that the scene holds what each text names
         (:func:`thgs.confidence.presence_confidence` of its best selectable region; NaN when
         the scene has no null)."""
         smallest = self.min_gaussians if min_gaussians is None else min_gaussians
-        cosines = {k: self.similarity(texts, k) for k in (1, 2, 3)}
+        cosines = {k: self.centred_similarity(texts, k, smallest) for k in (1, 2, 3)}
         return self._presence(cosines, smallest, self.null_model(smallest))
 
     def _selectable_cosines(self, cosines: dict[int, np.ndarray], smallest: int) -> np.ndarray:

@@ -8,7 +8,7 @@ from typing import Annotated, Literal
 
 import tyro
 
-from thgs.cli._console import StageBars, setup_logging, stage_progress, stdout
+from thgs.cli._console import StageBars, settings_as_flags, setup_logging, stage_progress, stdout
 from thgs.cli._outputs import check_output_folder
 
 __all__ = ["bench"]
@@ -21,7 +21,9 @@ def bench(
     seeds: tuple[int, ...] = (0,),
     kinds: tuple[Literal["2dgs", "3dgs"], ...] = ("2dgs",),
     severities: tuple[float, ...] = (0.5,),
-    context_mixes: tuple[float, ...] = (0.0, 0.5),
+    stand_ins: tuple[str, ...] = ("name-perfect", "clip-like"),
+    clip_like: bool = False,
+    clip_grid: bool = False,
     variants: tuple[str, ...] = (),
     gaussians: int | None = None,
     views: int | None = None,
@@ -44,9 +46,13 @@ def bench(
         seeds: scene seeds (results are averaged over them).
         kinds: Gaussian kinds of the scenes, 2dgs and/or 3dgs.
         severities: the oracle's mask-fault severities (0 clean, 0.5 default, 1 heavy).
-        context_mixes: the oracle's CLIP-likeness (0 name-perfect features; docs/synthetic.md);
-            each kind × severity × context mix is a scenario, and bench.md reports the automatic
-            and the paper's selection in every one.
+        stand_ins: how CLIP-like the oracle's features are (docs/synthetic.md): name-perfect,
+            clip-like, or a spec such as clip-like:parent_drift=0.8 or
+            name-perfect:context_mix=0.8; each kind × severity × stand-in is a scenario, and
+            bench.md reports the automatic and the paper's selection in every one.
+        clip_like: only the clip-like stand-in (instead of --stand-ins).
+        clip_grid: name-perfect and the grid around clip-like (parent drift 0.6 and 0.8 ×
+            surroundings 0.1 and 0.3) instead of --stand-ins.
         variants: a subset of the variants, by name (default: all).
         gaussians: override the presets' Gaussian count (quick runs).
         views: override the presets' view count.
@@ -58,15 +64,23 @@ def bench(
         verbose: log every stage.
     """
     from thgs.bench import BenchConfig, require_matplotlib, run_bench, write_bench
+    from thgs.errors import InputError
+    from thgs.synthetic import CLIP_GRID
 
     setup_logging(verbose)
+    if clip_like and clip_grid:
+        raise InputError("--clip-like", "and --clip-grid choose different stand-ins; pick one")
+    if clip_like:
+        stand_ins = ("clip-like",)
+    elif clip_grid:
+        stand_ins = ("name-perfect", *CLIP_GRID)
     check_output_folder(out)
     require_matplotlib()
     config = BenchConfig(
         seeds=seeds,
         kinds=kinds,
         severities=severities,
-        context_mixes=context_mixes,
+        stand_ins=stand_ins,
         gaussians=gaussians,
         views=views,
         cache=cache,
@@ -77,7 +91,8 @@ def bench(
         config = replace(config, presets=presets)
     if variants:
         config = replace(config, variants=variants)
-    config.check()
+    with settings_as_flags("seeds", "kinds", "severities", "stand_ins", "variants", "presets"):
+        config.check()
     with stage_progress() as bar:
         report = run_bench(config, progress=StageBars(bar))
     paths = write_bench(out, report)

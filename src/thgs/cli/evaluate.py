@@ -34,6 +34,7 @@ def evaluate(
     labels: Path | None = None,
     segmentations: Path | None = None,
     scannet: Path | None = None,
+    openhype: Path | None = None,
     scannet_level: int = 3,
     out: Annotated[Path | None, tyro.conf.arg(aliases=("-o",))] = None,
     scene: Path | None = None,
@@ -51,17 +52,22 @@ def evaluate(
 
     Args:
         dataset: the scene's dataset folder: label/ (LERF-OVS), segmentations/ (3D-OVS),
-            scannet/*.labels.ply (ScanNet), ground_truth.safetensors (synthetic).
+            scannet/*.labels.ply (ScanNet), ground_truth.safetensors (synthetic), and beside it
+            openhype_scannetpp_benchmark/<scene>/ (OpenHype's ScanNet++ objects and parts).
         field: the field file (thgs build).
         protocol: registered protocols (thgs.eval.protocols): lerf (THGS: 3D selection →
             rendered mask), lerf-langsplat (2D relevancy maps), lerf-opengaussian (silhouette >
-            0.7), 3dovs, scannet, hierarchy (synthetic levels); default: all with ground truth.
+            0.7), 3dovs, openhype (ScanNet++ objects and "[PART] of a [OBJ]" parts), scannet,
+            hierarchy (synthetic levels); default: all with ground truth.
         labels: the LERF-OVS labels, if neither in DATASET/label nor in LangSplat's
             DATASET/../label/<scene>: the scene's folder (lerf_ovs/label/teatime) or the folder
             of every scene (lerf_ovs/label: its <scene>/ is taken, <scene> being DATASET's
             name); decides when both places hold labels.
         segmentations: the 3D-OVS segmentations folder, if not DATASET/segmentations.
         scannet: the ScanNet label PLY (<scene>_vh_clean_2.labels.ply), if not in DATASET.
+        openhype: the OpenHype annotation folder of the scene (its *.json and mask PNGs), or
+            the folder of every scene's (openhype_scannetpp_benchmark: its <scene>/ is taken),
+            if not beside DATASET.
         scannet_level: the field level whose features classify ScanNet points (3: objects).
         out: the JSON report (default: <field>.eval.json); the table goes to the same name .md.
         scene: the scene the field was built on, if not where the field says.
@@ -90,14 +96,14 @@ def evaluate(
     for name in protocol:
         get_protocol(name)  # an unknown name stops here, before any loading
     ground_truth = find_ground_truth(
-        dataset, lerf=labels, three_dovs=segmentations, scannet=scannet
+        dataset, lerf=labels, three_dovs=segmentations, scannet=scannet, openhype=openhype
     )
     if not protocol and not ground_truth.available():
         places = "; ".join(source.describe for source in sources())
         raise InputError(
             dataset,
             f"holds no benchmark ground truth ({places}); name it with --labels, "
-            "--segmentations or --scannet",
+            "--segmentations, --scannet or --openhype",
         )
     semantic, loaded = open_field_scene(field, scene, device=device)
     if not other_scene:

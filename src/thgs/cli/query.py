@@ -101,16 +101,17 @@ def query(
     Args:
         field: the field file (thgs build).
         texts: one or more queries, e.g. mug "teddy bear".
-        mode: auto (per query: every region named like it, at any level, or nothing when
-            nothing is relevant), paper (the paper's: top 3 of levels 2 and 3, no threshold),
-            level (the --top
-            best regions of --level) or threshold (every region of --level above --threshold,
-            possibly none). Default: auto, or level when --level is given.
+        mode: auto (per query: the regions named like it, at the level where they are so
+            named, or nothing when nothing is relevant), paper (the paper's: top 3 of levels 2
+            and 3, no threshold), level (the --top best regions of --level) or threshold (every
+            region of --level above --threshold, possibly none). Default: auto, or level when
+            --level is given.
         level: 1 sub-parts, 2 parts, 3 objects (level and threshold modes; default 3).
         top: level mode: how many regions.
-        threshold: threshold mode: relevancy needed; auto mode: the relevancy the best region
-            needs (default: the embedding space's, 0.8 for
-            MiniLM, 0.5 for CLIP).
+        threshold: threshold mode: relevancy needed (default: the embedding space's, 0.8 for
+            MiniLM, 0.5 for CLIP); auto mode: the relevancy the best region needs (default: none;
+            auto abstains when the best region is no closer than ordinary names get in this
+            scene, docs/query.md).
         min_gaussians: never select regions with fewer Gaussians (default: the field's
             small-region size, 20 for the LERF preset; 0 to allow every region).
         views: view names (image stems) to draw masks in, or "all".

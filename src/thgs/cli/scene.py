@@ -117,7 +117,14 @@ def synth(
     views: int | None = None,
     severity: float = 0.5,
     feature_noise: float = 0.5,
-    context_mix: float = 0.0,
+    stand_in: str = "name-perfect",
+    clip_like: bool = False,
+    subpart_drift: float | None = None,
+    part_drift: float | None = None,
+    surroundings: float | None = None,
+    confusion: float | None = None,
+    compression: float | None = None,
+    context_mix: float | None = None,
     evaluation_views: int | None = None,
     overwrite: bool = False,
     verbose: bool = False,
@@ -138,8 +145,19 @@ def synth(
         views: override the preset's number of views.
         severity: SAM-like fault rate multiplier for the oracle masks (0 = clean ground truth).
         feature_noise: noise on the oracle's text-embedding features.
-        context_mix: how much a mask's feature looks like its parent's and its surroundings'
-            names, as CLIP crops do (0 = name-perfect, up to 1; docs/synthetic.md).
+        stand_in: how CLIP-like the oracle's features are: name-perfect (each mask's feature
+            is its name's embedding plus noise), clip-like (parts look like their object,
+            surroundings and look-alikes leak in, cosines compressed), either with changes
+            such as clip-like:parent_drift=0.8,surroundings=0.3 (docs/synthetic.md).
+        clip_like: the same as --stand-in clip-like.
+        subpart_drift: share of a sub-part's feature that is its part's (overrides the
+            stand-in; 0 to 1).
+        part_drift: share of a part's feature that is its object's (0 to 1).
+        surroundings: share of a mask's feature that is the bordering object's name (0 to 1).
+        confusion: share of a name's feature that is its look-alike's (0 to 0.5).
+        compression: pull of every feature towards one fixed direction (0 to below 1).
+        context_mix: the older single knob, mixing the parent's and the surroundings' names
+            with one weight (0 to 1; not combined with the four above).
         evaluation_views: views that get LERF-OVS / 3DOVS labels (default 4, or every view if
             fewer; more than the scene's views is an error).
         overwrite: replace an existing dataset folder that thgs wrote (its synthetic.json
@@ -149,6 +167,7 @@ def synth(
     """
     from rich.progress import Progress
 
+    from thgs.errors import InputError
     from thgs.synthetic import (
         DatasetConfig,
         OracleConfig,
@@ -158,6 +177,7 @@ def synth(
     )
     from thgs.synthetic import evaluation_views as spread_views
     from thgs.synthetic import preset as scene_preset
+    from thgs.synthetic import stand_in as stand_in_settings
     from thgs.text import MiniLMEncoder
 
     setup_logging(verbose)
@@ -168,9 +188,31 @@ def synth(
     if views is not None:
         overrides["views"] = views
     config = scene_preset(preset, **overrides)
-    with settings_as_flags("severity", "feature_noise", "context_mix", "evaluation_views"):
+    if clip_like and stand_in != "name-perfect":
+        raise InputError("--clip-like", f"is --stand-in clip-like; --stand-in {stand_in} too")
+    overrides = {
+        name: value
+        for name, value in (
+            ("subpart_drift", subpart_drift),
+            ("part_drift", part_drift),
+            ("surroundings", surroundings),
+            ("confusion", confusion),
+            ("compression", compression),
+            ("context_mix", context_mix),
+        )
+        if value is not None
+    }
+    flags = ("severity", "feature_noise", "evaluation_views", *overrides)
+    with settings_as_flags(*flags):
+        try:
+            named = stand_in_settings("clip-like" if clip_like else stand_in)
+        except InputError as error:
+            raise InputError("--stand-in", error.problem) from error
         oracle = OracleConfig(
-            severity=severity, feature_noise=feature_noise, context_mix=context_mix, seed=seed
+            severity=severity,
+            feature_noise=feature_noise,
+            seed=seed,
+            **(named | overrides),
         )
         dataset_config = DatasetConfig(evaluation_views=evaluation_views)
         spread_views(config.views, evaluation_views)

@@ -108,7 +108,8 @@ def suite(
     stale, and one report.
 
     Finds LangSplat's LERF-OVS release (lerf_ovs/<scene>, lerf_ovs/label/<scene>), 3D-OVS scenes
-    (<scene>/segmentations), ScanNet as OpenGaussian prepares it and synthetic datasets, with
+    (<scene>/segmentations), ScanNet as OpenGaussian prepares it, OpenHype's ScanNet++ scenes
+    (openhype_scannetpp_benchmark/<scene> beside them) and synthetic datasets, with
     their trained models (cfg_args, or ROOT/output/<scene>). For each scene it preprocesses
     (only a scene without language features), builds and evaluates what is not current, into
     OUT/<benchmark>/<scene>/; then writes OUT/report.md, report.json and report.png: per-scene
@@ -119,8 +120,8 @@ def suite(
     Args:
         root: the folder holding the benchmarks' data and the trained models.
         out: the folder for the scenes' outputs and the report.
-        select: benchmarks (lerf_ovs, 3dovs, scannet, synthetic), benchmark/scene keys or scene
-            names to run; default all.
+        select: benchmarks (lerf_ovs, 3dovs, scannet, openhype, synthetic), benchmark/scene
+            keys or scene names to run; default all.
         preset: one field-building preset for every scene; default each benchmark's (3dovs for
             3D-OVS, lerf otherwise), as in the paper.
         config: every field-building setting from a JSON config or a field file, for every

@@ -15,12 +15,19 @@ from thgs.eval.evaluate import (
     evaluate_lerf,
     evaluate_lerf_langsplat,
     evaluate_lerf_opengaussian,
+    evaluate_openhype,
     evaluate_scannet,
     read_lerf_frames,
 )
 from thgs.eval.ground_truth import Hierarchy, read_hierarchy
 from thgs.eval.lerf_ovs import FrameLabels, LabelledObject, read_lerf_labels, write_lerf_labels
 from thgs.eval.metrics import best_iou, matched_miou, purity
+from thgs.eval.openhype import (
+    OpenHypeFrame,
+    OpenHypeObject,
+    read_openhype_annotations,
+    write_openhype_annotations,
+)
 from thgs.eval.polygons import mask_to_polygons, rasterize_polygon
 from thgs.eval.protocols import Protocol, protocol_names, register_protocol
 from thgs.eval.rules import (
@@ -31,6 +38,7 @@ from thgs.eval.rules import (
     langsplat_localized,
     langsplat_mask,
     mask_iou,
+    openhype_localized,
     pixel_accuracy,
     scannet_scores,
 )
@@ -66,6 +74,8 @@ __all__ = [
     "GroundTruth",
     "Hierarchy",
     "LabelledObject",
+    "OpenHypeFrame",
+    "OpenHypeObject",
     "PointLabels",
     "Protocol",
     "ProtocolResult",
@@ -77,6 +87,7 @@ __all__ = [
     "evaluate_lerf",
     "evaluate_lerf_langsplat",
     "evaluate_lerf_opengaussian",
+    "evaluate_openhype",
     "evaluate_scannet",
     "find_ground_truth",
     "langsplat_level",
@@ -86,6 +97,7 @@ __all__ = [
     "mask_to_polygons",
     "matched_miou",
     "mean_over_scenes",
+    "openhype_localized",
     "pixel_accuracy",
     "protocol_names",
     "purity",
@@ -95,11 +107,13 @@ __all__ = [
     "read_hierarchy",
     "read_lerf_frames",
     "read_lerf_labels",
+    "read_openhype_annotations",
     "read_scannet_labels",
     "register_protocol",
     "scannet_classes_path",
     "scannet_scores",
     "write_3dovs_segmentations",
     "write_lerf_labels",
+    "write_openhype_annotations",
     "write_scannet_labels",
 ]

@@ -13,6 +13,9 @@ source (protocols)   ground truth
 ``three_dovs``       ``segmentations/`` with ``classes.txt``
 (``3dovs``)
 ``scannet``          ``scannet/*.labels.ply`` or ``*_vh_clean_2.labels.ply`` in the folder
+``openhype``         ``openhype_scannetpp_benchmark/<scene>/*.json`` (OpenHype's ScanNet++
+(``openhype``)       annotations) beside the folder or beside its parent; ``openhype=`` may name
+                     the scene's annotation folder or the one of every scene
 ``hierarchy``        ``ground_truth.safetensors`` (synthetic scenes)
 ==================== ============================================================================
 
@@ -85,7 +88,7 @@ def find_ground_truth(dataset: str | Path, **given: str | Path | None) -> Ground
         given: a path per source name where it is not in the usual place, e.g.
             ``lerf="lerf_ovs/label/teatime"`` (or ``lerf="lerf_ovs/label"``, the folder of
             every scene's labels: its ``<scene name>/`` is taken), ``three_dovs=…``,
-            ``scannet=…`` (None: look).
+            ``scannet=…``, ``openhype=…`` (None: look).
 
     Raises:
         InputError: ``dataset`` is not a folder, an explicit path does not exist or holds no

@@ -15,14 +15,16 @@ can be traced. The per-image and per-point rules are in :mod:`thgs.eval.rules`.
   normalization and threshold, the level with the highest smoothed peak; mIoU and localization
   accuracy as flat means over (frame, prompt).
 - ``3dovs``: the ``lerf`` rule on 3D-OVS's per-class masks; "wood wall" is queried as "wood".
+- ``openhype``: the ``lerf`` rule on OpenHype's ScanNet++ object and part masks; mIoU and
+  localization accuracy as OpenHype averages them, flat over (frame, prompt), also per kind.
 - ``scannet``: every Gaussian classified by the best-matching class text; mIoU and mAcc per
   class subset.
 - ``hierarchy`` (synthetic): matched-region mIoU of levels 1–3 against the ground-truth
   sub-parts, parts and objects, and superpoint purity.
 
 Masks are rendered at the camera's resolution; LERF polygons and boxes are scaled from the label
-resolution to it. 3D-OVS masks cannot be rescaled without loss, so those views are rendered at
-the masks' resolution (intrinsics scaled per axis).
+resolution to it. 3D-OVS and OpenHype masks cannot be rescaled without loss, so those views are
+rendered at the masks' resolution (intrinsics scaled per axis).
 """
 
 from __future__ import annotations
@@ -41,11 +43,13 @@ from thgs.errors import InputError
 from thgs.eval.ground_truth import Hierarchy
 from thgs.eval.lerf_ovs import FrameLabels, read_lerf_labels
 from thgs.eval.metrics import matched_miou, purity
+from thgs.eval.openhype import OpenHypeFrame, openhype_views
 from thgs.eval.rules import (
     OPENGAUSSIAN_LERF_PROMPTS,
     OPENGAUSSIAN_THRESHOLD,
     langsplat_query,
     mask_iou,
+    openhype_localized,
     pixel_accuracy,
     scannet_scores,
 )
@@ -71,6 +75,7 @@ __all__ = [
     "evaluate_lerf",
     "evaluate_lerf_langsplat",
     "evaluate_lerf_opengaussian",
+    "evaluate_openhype",
     "evaluate_scannet",
     "frame_mean",
     "read_lerf_frames",
@@ -440,6 +445,90 @@ def evaluate_3dovs(
         items,
         {"selection": engine.config.mode, "mask_threshold": mask_threshold},
     )
+
+
+def _flat_mean(items: Sequence[Mapping[str, Any]], key: str, part: bool | None = None) -> float:
+    values = [float(item[key]) for item in items if part is None or item["part"] == part]
+    return float(np.mean(values)) if values else float("nan")
+
+
+def evaluate_openhype(
+    engine: FieldQuery,
+    gaussians: Gaussians,
+    cameras: Cameras,
+    frames: Sequence[OpenHypeFrame],
+    *,
+    protocol: str = "openhype",
+    mask_threshold: float = 0.5,
+    source: str = "OpenHype annotations",
+    raster: RasterConfig = RasterConfig(),
+    progress: Progress | None = None,
+    rescale_labels: bool = False,
+) -> ProtocolResult:
+    """OpenHype's ScanNet++ benchmark with the THGS rule (docs/protocols.md).
+
+    Each frame is evaluated in the camera :func:`thgs.eval.openhype.openhype_views` matches it
+    to, rendered at the masks' size (``info``'s width × height; another aspect ratio than the
+    camera's is refused unless ``rescale_labels``: :func:`check_label_size`). Per prompt
+    (:meth:`~thgs.eval.openhype.OpenHypeFrame.prompts`: one per category, the first mask), the
+    selection rendered as accumulated opacity > ``mask_threshold`` is scored against the mask
+    (:func:`thgs.eval.rules.mask_iou`) and localized in its boxes
+    (:func:`thgs.eval.rules.openhype_localized`).
+
+    Args:
+        engine: the query engine (its config is the selection rule).
+        frames: the annotation frames (:func:`thgs.eval.read_openhype_annotations`).
+        protocol: the name recorded in the result.
+        source: the annotation folder, for messages.
+
+    Returns:
+        metrics ``miou`` and ``localization`` (flat means over every (frame, prompt), as
+        OpenHype's evaluator averages), and the same over the object prompts
+        (``miou_objects``, ``localization_objects``) and the part prompts (``miou_parts``,
+        ``localization_parts``; NaN when there are none); one item per (frame, prompt).
+    """
+    match = openhype_views(cameras, frames, source)
+    items = []
+    for done, (frame, index) in enumerate(zip(frames, match.indices)):
+        prompts = frame.prompts()
+        if prompts:
+            camera = cameras.select([index])
+            camera_size = (int(camera.widths[0]), int(camera.heights[0]))
+            where = f"{source}/{frame.stem}.json"
+            check_label_size(where, (frame.width, frame.height), camera_size, rescale_labels)
+            camera = camera.resized([frame.width], [frame.height])
+            selected = engine.selected([prompt.category for prompt in prompts])
+            masks = selection_masks(
+                gaussians, camera, selected, threshold=mask_threshold, config=raster
+            )
+            for q, prompt in enumerate(prompts):
+                items.append(
+                    {
+                        "frame": frame.stem,
+                        "view": cameras.stems[index],
+                        "prompt": prompt.category,
+                        "part": prompt.is_part,
+                        "iou": mask_iou(masks[..., q], prompt.mask),
+                        "localized": openhype_localized(masks[..., q], prompt.boxes),
+                        "predicted_pixels": int(masks[..., q].sum()),
+                        "truth_pixels": int(prompt.mask.sum()),
+                    }
+                )
+        if progress is not None:
+            progress(done + 1, len(frames))
+    metrics = {}
+    for suffix, part in (("", None), ("_objects", False), ("_parts", True)):
+        metrics[f"miou{suffix}"] = _flat_mean(items, "iou", part)
+        metrics[f"localization{suffix}"] = _flat_mean(items, "localized", part)
+    settings = {
+        "selection": engine.config.mode,
+        "mask_threshold": mask_threshold,
+        "views": match.rule,
+        "prompts": len(items),
+        "object_prompts": sum(not item["part"] for item in items),
+        "part_prompts": sum(bool(item["part"]) for item in items),
+    }
+    return ProtocolResult(protocol, metrics, items, settings, (match.note,) if match.note else ())
 
 
 def scannet_subsets(labels: PointLabels) -> dict[str, tuple[int, ...]]:

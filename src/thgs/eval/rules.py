@@ -38,6 +38,10 @@ lists ``scene_texts`` (:data:`OPENGAUSSIAN_LERF_PROMPTS`).
 OpenGaussian's ScanNet protocol (same repository, ``scripts/eval_scannet.py``,
 ``calculate_metrics``): :func:`scannet_scores`.
 
+OpenHype's ScanNet++ protocol (github.com/lisaweijler/openhype,
+``openhype/openhype_eval/scannetpp_evaluator.py``): :func:`openhype_localized`, LangSplat's
+localization on the map its mask step has already mixed in place, applied to a predicted mask.
+
 Deviations, all documented per function: arithmetic is float64 (the references use float32,
 and OpenCV may filter the 30×30 kernel through the DFT), so pixels within ~1e-7 of a threshold
 or a peak may decide differently; :func:`mask_iou` scores two empty masks 1.0 (LangSplat divides
@@ -69,6 +73,7 @@ __all__ = [
     "langsplat_query",
     "majority_filter",
     "mask_iou",
+    "openhype_localized",
     "pixel_accuracy",
     "scannet_scores",
 ]
@@ -386,19 +391,20 @@ def langsplat_level(relevancy: np.ndarray) -> int:
     return _level_of(relevancy, [box_filter(level, _LANGSPLAT_WINDOW) for level in relevancy])
 
 
-def _checked_boxes(boxes: Sequence[tuple[float, float, float, float]]) -> np.ndarray:
+def _checked_boxes(
+    boxes: Sequence[tuple[float, float, float, float]], name: str = "langsplat_localized"
+) -> np.ndarray:
     """``boxes`` as a [B, 4] float64 array of finite (x1, y1, x2, y2), B ≥ 1."""
     try:
         array = np.asarray(boxes, dtype=np.float64)
     except (TypeError, ValueError) as exc:
-        raise InputError("langsplat_localized", "boxes must be (x1, y1, x2, y2) numbers") from exc
+        raise InputError(name, "boxes must be (x1, y1, x2, y2) numbers") from exc
     if array.ndim != 2 or array.shape[1] != 4 or len(array) == 0:
         raise InputError(
-            "langsplat_localized",
-            f"boxes must be one or more (x1, y1, x2, y2), got shape {array.shape}",
+            name, f"boxes must be one or more (x1, y1, x2, y2), got shape {array.shape}"
         )
     if not np.isfinite(array).all():
-        raise InputError("langsplat_localized", "boxes have NaN or infinite values")
+        raise InputError(name, "boxes have NaN or infinite values")
     return array
 
 
@@ -458,6 +464,47 @@ def langsplat_query(
     chosen = _level_of(relevancy, smoothed)
     mask = _mask_of_mixed(_mixed(relevancy[chosen], smoothed[chosen]), threshold)
     return chosen, mask, _peak_in_boxes(smoothed, boxes)
+
+
+def openhype_localized(
+    predicted: np.ndarray, boxes: Sequence[tuple[float, float, float, float]]
+) -> bool:
+    """OpenHype's localization hit, on a predicted mask: is the peak of the twice-smoothed
+    prediction inside a ground-truth box?
+
+    OpenHype's ``scannetpp_evaluator.py`` scores a relevancy map ``r`` twice per query: its mask
+    step (``_get_mask_segmentation_results``) first overwrites ``r`` in place with the mixed
+    ``m = 0.5 · (box_filter(r, 30) + r)``, and its localization step
+    (``_get_localization_results``, LangSplat's ``lerf_localization``) then takes the 30×30
+    :func:`box_filter` of that already mixed map, its peak, and every pixel attaining it as
+    (x = column, y = row): a hit when one lies in one of the boxes, bounds inclusive, corners in
+    either order (its two "levels" are copies of one map, so the first is chosen). Here ``r`` is
+    the predicted mask as 0/1. An empty prediction is a miss: every pixel of a constant map
+    attains its peak, so the reference rule would call it a hit whenever a box lies in the image.
+
+    Args:
+        predicted: [H, W] bool (or integer, nonzero = in) predicted mask.
+        boxes: one or more (x1, y1, x2, y2) ground-truth boxes in the mask's pixel coordinates
+            (x = column, y = row).
+
+    Returns:
+        True when a peak pixel lies in a box.
+
+    Raises:
+        InputError: ``predicted`` is not a non-empty [H, W] bool or integer mask, or ``boxes``
+            is empty, not 4 numbers each, or not finite.
+    """
+    mask = np.asarray(predicted)
+    if mask.ndim != 2 or mask.size == 0:
+        raise InputError("openhype_localized", f"expected an [H, W] mask, got shape {mask.shape}")
+    if mask.dtype != bool and not np.issubdtype(mask.dtype, np.integer):
+        raise InputError("openhype_localized", f"expected a bool or integer mask, got {mask.dtype}")
+    boxes = _checked_boxes(boxes, "openhype_localized")
+    if not mask.any():
+        return False
+    relevancy = (mask != 0).astype(np.float64)
+    mixed = _mixed(relevancy, box_filter(relevancy, _LANGSPLAT_WINDOW))
+    return _peak_in_boxes([box_filter(mixed, _LANGSPLAT_WINDOW)], boxes)
 
 
 @dataclass(frozen=True)

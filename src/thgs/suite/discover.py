@@ -13,6 +13,10 @@ benchmark     a data folder ``D`` that
               ``3dovs/`` (also ``3d_ovs``, ``3d-ovs``)
 ``lerf_ovs``  has labels in LangSplat's ``../label/<D's name>/frame_*.json`` or in
               ``label/``, or sits in a folder ``lerf_ovs/``
+``openhype``  looks like training data and has OpenHype's ScanNet++ annotations in
+              ``openhype_scannetpp_benchmark/<D's name>/*.json`` beside it or beside its
+              folder (a scene processed by OpenHype's ``scannetpp_preprocess.py``:
+              ``transforms.json``, ``images/``), or sits in a folder ``scannetpp/``
 ============= ============================================================================
 
 A folder recognised only by where it sits must look like training data (``images/``,
@@ -26,7 +30,9 @@ whose ``cfg_args`` names the data folder (:func:`thgs.scene.cfg_args.find_model_
 
 Protocols run per benchmark (:data:`BENCHMARK_PROTOCOLS`): LERF-OVS scenes ``lerf`` (which
 reports the chosen selection and the paper's, ``lerf-paper``) and ``lerf-langsplat``; 3D-OVS
-scenes ``3dovs``; ScanNet scenes ``scannet``; synthetic scenes every protocol with ground truth.
+scenes ``3dovs``; ScanNet scenes ``scannet``; OpenHype's ScanNet++ scenes ``openhype`` (which
+reports the chosen selection and the paper's, ``openhype-paper``); synthetic scenes every
+protocol with ground truth.
 """
 
 from __future__ import annotations
@@ -40,19 +46,21 @@ from pathlib import Path
 from thgs.errors import InputError
 from thgs.eval.dataset import GroundTruth, find_ground_truth
 from thgs.eval.protocols import get_protocol
+from thgs.eval.protocols.openhype import ANNOTATION_FOLDER, find_openhype_annotations
 from thgs.scene.cfg_args import CFG_ARGS, find_model_source
 
 __all__ = ["BENCHMARKS", "BENCHMARK_PROTOCOLS", "SuiteScene", "find_suite"]
 
 logger = logging.getLogger(__name__)
 
-BENCHMARKS = ("lerf_ovs", "3dovs", "scannet", "synthetic")
+BENCHMARKS = ("lerf_ovs", "3dovs", "scannet", "openhype", "synthetic")
 """The benchmarks a suite is made of, in report order."""
 
 BENCHMARK_PROTOCOLS: dict[str, tuple[str, ...] | None] = {
     "lerf_ovs": ("lerf", "lerf-langsplat"),
     "3dovs": ("3dovs",),
     "scannet": ("scannet",),
+    "openhype": ("openhype",),
     "synthetic": None,
 }
 """The protocols run on each benchmark's scenes (None: every protocol with ground truth)."""
@@ -63,6 +71,7 @@ _PARENTS = {
     "3d_ovs": "3dovs",
     "3d-ovs": "3dovs",
     "scannet": "scannet",
+    "scannetpp": "openhype",
 }
 """A folder name (lower case) whose sub-folders are scenes of a benchmark."""
 
@@ -82,6 +91,7 @@ _NOT_SCENES = frozenset(
         "depth",
         "intrinsic",
         "pose",
+        ANNOTATION_FOLDER,
     }
 )
 """Folders never walked into: parts of a scene, never a scene."""
@@ -136,6 +146,13 @@ def _lerf_labels(folder: Path) -> bool:
     return False
 
 
+def _openhype_annotations(folder: Path) -> bool:
+    try:
+        return find_openhype_annotations(folder) is not None
+    except InputError:  # in two places: a scene all the same, whose problem says so
+        return True
+
+
 def _benchmark(folder: Path) -> str | None:
     """The benchmark whose scene ``folder`` is, or None."""
     if (folder / "synthetic.json").is_file():
@@ -146,6 +163,8 @@ def _benchmark(folder: Path) -> str | None:
         return "3dovs"
     if _looks_like_data(folder) and _lerf_labels(folder):
         return "lerf_ovs"
+    if _looks_like_data(folder) and _openhype_annotations(folder):
+        return "openhype"
     parent = _PARENTS.get(folder.parent.name.lower())
     if parent is not None and _looks_like_data(folder):
         return parent
@@ -230,6 +249,10 @@ _NEEDS = {
     "lerf": "LERF-OVS labels (label/frame_*.json, or LangSplat's ../label/<scene>/frame_*.json)",
     "three_dovs": "3D-OVS masks (segmentations/classes.txt with segmentations/<NN>/<class>.png)",
     "scannet": "ScanNet point labels (<scene>_vh_clean_2.labels.ply)",
+    "openhype": (
+        f"OpenHype's ScanNet++ annotations ({ANNOTATION_FOLDER}/<scene>/*.json beside the scene "
+        "or beside its folder)"
+    ),
 }
 
 
@@ -334,8 +357,9 @@ def find_suite(
             "holds no recognisable scene; looked for LangSplat's LERF-OVS release "
             "(lerf_ovs/<scene> with lerf_ovs/label/<scene>/frame_*.json), 3D-OVS scenes "
             "(<scene>/segmentations/classes.txt), ScanNet as OpenGaussian prepares it "
-            "(scannet/<scene>/<scene>_vh_clean_2.labels.ply) and synthetic datasets "
-            "(synthetic.json, thgs synth)",
+            "(scannet/<scene>/<scene>_vh_clean_2.labels.ply), OpenHype's ScanNet++ scenes "
+            f"(scannetpp/<scene> with {ANNOTATION_FOLDER}/<scene>/*.json) and synthetic "
+            "datasets (synthetic.json, thgs synth)",
         )
     named = _named_sources(models, root)
     scenes = [_scene(benchmark, folder, root, named) for benchmark, folder in folders]

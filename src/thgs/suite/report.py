@@ -11,6 +11,8 @@ The tables (values in percent in ``report.md``, in [0, 1] in ``report.json``):
   (``lerf``), under the paper's rule (``lerf-paper``), and LangSplat's 2D rule;
 - 3D-OVS (Table 2): mIoU and accuracy;
 - ScanNet (Table 4): mIoU and mAcc over 19, 15 and 10 classes;
+- OpenHype's ScanNet++: mIoU over all, object and part prompts under the chosen selection
+  (``openhype``), mIoU under the paper's rule (``openhype-paper``), and localization accuracy;
 - synthetic: mIoU per hierarchy level, LERF-OVS and 3D-OVS mIoU.
 
 Every timing is kept under ``report.json``'s ``"timings"``, and what ran (which stage ran or was
@@ -52,6 +54,14 @@ HEADLINES: dict[str, tuple[tuple[str, str, str], ...]] = {
         for n in (19, 15, 10, "all")
         for metric, label in (("miou", "mIoU"), ("macc", "mAcc"))
     ),
+    "openhype": (
+        ("openhype", "miou", "mIoU ({selection})"),
+        ("openhype", "miou_objects", "object mIoU ({selection})"),
+        ("openhype", "miou_parts", "part mIoU ({selection})"),
+        ("openhype-paper", "miou", "mIoU (paper's rule)"),
+        ("openhype-paper", "miou_parts", "part mIoU (paper's rule)"),
+        ("openhype", "localization", "loc ({selection})"),
+    ),
     "synthetic": (
         ("hierarchy", "miou_subpart", "sub-part mIoU"),
         ("hierarchy", "miou_part", "part mIoU"),
@@ -70,6 +80,7 @@ _TITLES = {
     "lerf_ovs": "LERF-OVS",
     "3dovs": "3D-OVS",
     "scannet": "ScanNet",
+    "openhype": "OpenHype ScanNet++",
     "synthetic": "synthetic",
 }
 

@@ -8,7 +8,8 @@ Usage::
     scene = generate_scene(preset("synth-small", seed=1))
     write_dataset("out/synth-small", scene, MiniLMEncoder())
 
-:func:`write_opengaussian_scannet` lays a dataset out as OpenGaussian's ScanNet scenes
+:func:`write_opengaussian_scannet` lays a dataset out as OpenGaussian's ScanNet scenes, and
+:func:`write_openhype_scannetpp` as a scene of OpenHype's ScanNet++ benchmark
 (:mod:`thgs.synthetic.layouts`). See docs/synthetic.md.
 """
 
@@ -27,13 +28,25 @@ from thgs.synthetic.layouts import (
     write_3dovs,
     write_langsplat_lerf,
     write_opengaussian_scannet,
+    write_openhype_scannetpp,
 )
-from thgs.synthetic.oracle import FaultRates, LevelMasks, OracleConfig, oracle_guidance
+from thgs.synthetic.oracle import (
+    CLIP_GRID,
+    STAND_INS,
+    FaultRates,
+    LevelMasks,
+    OracleConfig,
+    oracle_guidance,
+    stand_in,
+    stand_in_spec,
+)
 from thgs.synthetic.scene import PRESETS, SceneConfig, SyntheticScene, generate_scene, preset
 
 __all__ = [
+    "CLIP_GRID",
     "DATASET_VERSION",
     "PRESETS",
+    "STAND_INS",
     "DatasetConfig",
     "DatasetSummary",
     "FaultRates",
@@ -49,8 +62,11 @@ __all__ = [
     "oracle_guidance",
     "preset",
     "render_view",
+    "stand_in",
+    "stand_in_spec",
     "write_3dovs",
     "write_dataset",
     "write_langsplat_lerf",
     "write_opengaussian_scannet",
+    "write_openhype_scannetpp",
 ]

@@ -28,6 +28,7 @@ from thgs.synthetic.shapes import (
 )
 
 __all__ = [
+    "CONFUSABLE_NAMES",
     "FLOOR_OBJECTS",
     "PALETTE",
     "TABLE_OBJECTS",
@@ -368,3 +369,18 @@ TABLE_OBJECTS: dict[str, Callable[[np.random.Generator], ObjectModel]] = {
 
 FLOOR_OBJECTS: dict[str, Callable[[np.random.Generator], ObjectModel]] = {"chair": build_chair}
 """Objects that stand on the floor beside the table."""
+
+CONFUSABLE_NAMES: tuple[tuple[str, str], ...] = (
+    ("mug", "bottle"),  # drinking vessels on a table
+    ("mug body", "bottle body"),  # a glazed or glass cylinder
+    ("table", "chair"),  # wooden furniture of the same colours
+    ("table top", "chair seat"),  # a flat horizontal board
+    ("table leg", "chair leg"),  # a square wooden post
+    ("table legs", "chair legs"),
+    ("lamp shade", "flower pot"),  # a truncated cone, open at the top
+    ("lamp pole", "plant stem"),  # a thin vertical rod
+    ("coffee", "soil"),  # a dark brown disc inside a container
+)
+"""Pairs of catalog names that look alike in a crop, across objects: what an image model
+confuses (as CLIP confuses a cup with a mug). The oracle's ``confusion`` mixes each name's
+partner into its features (:class:`thgs.synthetic.OracleConfig`)."""

@@ -49,6 +49,34 @@ layouts they meet in practice.
 
   Each of its folders is written whole or not at all (:func:`thgs._atomic.atomic_folder`).
 
+- :func:`write_openhype_scannetpp` — OpenHype's ScanNet++ benchmark as
+  ``benchmark/scannetpp_preprocess.py`` lays a scene out (github.com/lisaweijler/openhype) and
+  its annotation folder, with a model in ``root/output/<scene>``::
+
+      ROOT/scannetpp/<scene>/                  the processed nerfstudio scene (--output_dir)
+          transforms.json                      every view, camera→world in OpenGL axes: the
+                                               annotated views first, renamed
+                                               images/frame_eval_00001.jpg … in the sorted order
+                                               of their annotation files, then the others,
+                                               images/frame_train_00001.jpg …
+          images/                              the views' images under those names
+          language_features/                   the dataset's guidance, renamed likewise
+      ROOT/openhype_scannetpp_benchmark/<scene>/   the annotations (--test_dir), per evaluation
+          <stem>.json                          view: info (name <stem>.jpg, size, intrinsics,
+                                               camera_model, transform_matrix) and objects
+                                               (category, is_part, bbox, path_to_mask)
+          masks/<stem>/<NN>.png                one mask per prompt, 255 = in
+          <stem>.jpg                           the view's image (the preprocessing copies it)
+      ROOT/output/<scene>/{point_cloud/iteration_30000/point_cloud.ply, cfg_args}
+
+  The prompts of a view are the names of the objects it shows (except the floor) and, for the
+  parts named differently from their object, OpenHype's "[PART] of a [OBJ]"
+  (:func:`thgs.eval.openhype.part_prompt`: part "mug handle" of a "mug" is "handle of a mug");
+  each mask is the union of the prompt's nodes covering at least ``min_label_pixels`` pixels of
+  the view (the dataset's setting, as for its LERF-OVS labels), with one box per node. The
+  ground truth is the dataset's ``ground_truth.safetensors`` at each pixel's max-weight
+  Gaussian.
+
 Each model folder's ``cfg_args`` names its training data (``source_path``) as a trainer writes
 it. The LERF-OVS and 3D-OVS folders are copied, or linked (``link=True``: cheap, for tests) to
 the dataset's.
@@ -60,6 +88,7 @@ import json
 import logging
 import os
 import shutil
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -67,11 +96,34 @@ import plyfile
 
 from thgs._atomic import atomic_folder
 from thgs.errors import InputError
+from thgs.eval.ground_truth import read_hierarchy
+from thgs.eval.openhype import (
+    EVAL_VIEW_PREFIX,
+    OpenHypeFrame,
+    OpenHypeObject,
+    part_prompt,
+    write_openhype_annotations,
+)
+from thgs.eval.protocols.openhype import ANNOTATION_FOLDER
 from thgs.eval.scannet import read_scannet_labels, write_scannet_labels
-from thgs.scene import SH_C0, Cameras, read_cameras_json, read_ply
+from thgs.scene import (
+    SH_C0,
+    Cameras,
+    read_cameras_json,
+    read_ply,
+    write_transforms_json,
+)
 from thgs.scene.transforms_json import OPENGL_TO_OPENCV
+from thgs.synthetic.dataset import label_categories, render_view
+from thgs.synthetic.oracle import ground_truth_maps
+from thgs.synthetic.scene import SceneConfig, SyntheticScene
 
-__all__ = ["write_3dovs", "write_langsplat_lerf", "write_opengaussian_scannet"]
+__all__ = [
+    "write_3dovs",
+    "write_langsplat_lerf",
+    "write_opengaussian_scannet",
+    "write_openhype_scannetpp",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -324,4 +376,146 @@ def write_opengaussian_scannet(
             encoding="utf-8",
         )
     logger.info("wrote OpenGaussian's ScanNet layout of %s: %s and %s", dataset, data, model)
+    return data
+
+
+def _dataset_scene(dataset: Path) -> tuple[SyntheticScene, dict]:
+    """The dataset's scene as written (Gaussians, cameras, ground truth; its objects are not
+    stored) and its ``synthetic.json`` record."""
+    record = json.loads((dataset / "synthetic.json").read_text(encoding="utf-8"))
+    scene = SyntheticScene(
+        gaussians=read_ply(dataset / "point_cloud" / "iteration_30000" / "point_cloud.ply"),
+        cameras=read_cameras_json(dataset / "cameras.json"),
+        hierarchy=read_hierarchy(dataset / "ground_truth.safetensors"),
+        objects=(),
+        config=SceneConfig(**record["scene"]),
+    )
+    return scene, record
+
+
+def _openhype_frame(
+    scene: SyntheticScene, index: int, background: tuple[float, float, float], min_pixels: int
+) -> OpenHypeFrame:
+    """The OpenHype annotations of view ``index``: its objects and its parts named differently
+    from their object, from each pixel's max-weight Gaussian."""
+    cameras, hierarchy = scene.cameras, scene.hierarchy
+    parents = hierarchy.levels.parents
+    assert parents is not None  # ground truth always nests
+    stem = cameras.stems[index]
+    _, max_id = render_view(scene, index, background)
+    maps = ground_truth_maps(max_id, hierarchy)
+    prompts: dict[str, tuple[int, list[int]]] = {}
+    for name, (level, nodes) in label_categories(maps, scene, min_pixels).items():
+        if level == 2:
+            prompts.setdefault(name, (2, []))[1].extend(nodes)
+        elif level == 1:
+            for node in nodes:
+                whole = hierarchy.names[3][parents[2][node]]
+                prompts.setdefault(part_prompt(name, whole), (1, []))[1].append(node)
+    objects = []
+    for number, (prompt, (level, nodes)) in enumerate(prompts.items()):
+        boxes = []
+        for node in nodes:
+            rows, cols = np.nonzero(maps[level] == node)
+            boxes.append([cols.min(), rows.min(), cols.max(), rows.max()])
+        objects.append(
+            OpenHypeObject(
+                prompt,
+                level == 1,
+                np.isin(maps[level], nodes),
+                np.asarray(boxes, dtype=np.float64),
+                f"masks/{stem}/{number:02d}.png",
+            )
+        )
+    camtoworld = cameras.camtoworlds()[index].numpy() @ OPENGL_TO_OPENCV
+    return OpenHypeFrame(
+        stem=stem,
+        image_name=f"{stem}.jpg",
+        width=int(cameras.widths[index]),
+        height=int(cameras.heights[index]),
+        K=cameras.Ks[index].numpy(),
+        camtoworld=camtoworld,
+        camera_model="PINHOLE",
+        objects=tuple(objects),
+    )
+
+
+def write_openhype_scannetpp(
+    dataset: str | os.PathLike[str],
+    root: str | os.PathLike[str],
+    scene: str = "5ee7c22ba0",
+    *,
+    link: bool = False,
+) -> Path:
+    """Lay a synthetic dataset out as a scene of OpenHype's ScanNet++ benchmark, processed by
+    its ``scannetpp_preprocess.py``, with the annotation folder and a trained model (the module
+    docstring's layout). The annotated views are the dataset's evaluation views.
+
+    Args:
+        dataset: a folder written by ``thgs synth`` (:func:`thgs.synthetic.write_dataset`).
+        root: the folder to hold ``scannetpp/<scene>``, ``openhype_scannetpp_benchmark/<scene>``
+            and ``output/<scene>``; created if needed.
+        scene: the scene's name (a ScanNet++ scene id such as ``5ee7c22ba0``).
+        link: link the model's point cloud to the dataset's instead of copying it.
+
+    Returns:
+        the processed scene's folder, ``root/scannetpp/<scene>``.
+
+    Raises:
+        InputError: ``dataset`` is not a synthetic dataset, ``scene`` is not a folder name, or
+            one of the three folders already exists and is not empty.
+    """
+    dataset, root = _checked(dataset, root, scene)
+    _check_dataset(dataset)
+    data = root / "scannetpp" / scene
+    annotations = root / ANNOTATION_FOLDER / scene
+    for folder in (data, annotations, root / "output" / scene):
+        if folder.exists() and (not folder.is_dir() or any(folder.iterdir())):
+            raise InputError(folder, "already exists and is not empty")
+    synthetic, record = _dataset_scene(dataset)
+    cameras = synthetic.cameras
+    evaluated = [cameras.stems.index(stem) for stem in record["evaluation_views"]]
+    red, green, blue = (float(v) for v in record["dataset"]["background"])
+    min_pixels = max(1, int(record["dataset"]["min_label_pixels"]))
+    frames = [_openhype_frame(synthetic, i, (red, green, blue), min_pixels) for i in evaluated]
+
+    others = [i for i in range(len(cameras)) if i not in evaluated]
+    order = sorted(evaluated, key=lambda i: f"{cameras.stems[i]}.JPG") + others
+    names = {i: f"{EVAL_VIEW_PREFIX}{k + 1:05d}" for k, i in enumerate(order[: len(evaluated)])}
+    names |= {i: f"frame_train_{k + 1:05d}" for k, i in enumerate(others)}
+
+    data.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_folder(data) as staging:
+        (staging / "images").mkdir()
+        features = staging / "language_features"
+        features.mkdir()
+        shutil.copyfile(
+            dataset / "language_features" / "embedding.json", features / "embedding.json"
+        )
+        for i in order:
+            stem, name = cameras.stems[i], names[i]
+            shutil.copyfile(dataset / "images" / f"{stem}.jpg", staging / "images" / f"{name}.jpg")
+            for kind in ("s", "f"):
+                shutil.copyfile(
+                    dataset / "language_features" / f"{stem}_{kind}.npy",
+                    features / f"{name}_{kind}.npy",
+                )
+        write_transforms_json(
+            staging / "transforms.json",
+            replace(cameras.select(order), names=tuple(f"images/{names[i]}.jpg" for i in order)),
+        )
+
+    write_openhype_annotations(annotations, frames)
+    for i in evaluated:
+        stem = cameras.stems[i]
+        shutil.copyfile(dataset / "images" / f"{stem}.jpg", annotations / f"{stem}.jpg")
+
+    _write_model(dataset, root, scene, os.path.abspath(data), cameras_json=False, link=link)
+    logger.info(
+        "wrote OpenHype's ScanNet++ layout of %s: %s, %s and %s",
+        dataset,
+        data,
+        annotations,
+        root / "output" / scene,
+    )
     return data

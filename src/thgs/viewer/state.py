@@ -57,7 +57,7 @@ QueryMode = Literal["auto", "paper", "level", "threshold"]
 ColorMode = Literal["scene", "regions", "relevancy"]
 
 QUERY_MODES: dict[str, str] = {
-    "auto": "every region named like the query, at any level, or nothing",
+    "auto": "the regions named like the query, at their own level, or nothing",
     "paper": "the paper's: top 3 of parts and objects",
     "level": "the best region of the level",
     "threshold": "every region of the level above the threshold",

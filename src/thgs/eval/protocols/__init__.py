@@ -10,7 +10,8 @@ headline metrics (what ``thgs bench`` tabulates). :func:`thgs.eval.find_ground_t
 its ground truth is new) and :func:`register_protocol`, plus its name in :data:`BUILT_IN`
 (or, from outside thgs, importing the module before evaluating). The built-in ones, in report
 order: ``lerf``, ``lerf-langsplat``, ``lerf-opengaussian`` (LERF-OVS under the THGS, LangSplat
-and OpenGaussian rules), ``3dovs``, ``scannet``, ``hierarchy`` (synthetic scenes).
+and OpenGaussian rules), ``3dovs``, ``scannet``, ``openhype`` (OpenHype's ScanNet++ objects and
+parts), ``hierarchy`` (synthetic scenes).
 """
 
 from __future__ import annotations
@@ -168,7 +169,15 @@ def sources() -> tuple[GroundTruthSource, ...]:
     return tuple(_SOURCES.values())
 
 
-BUILT_IN = ("lerf", "lerf_langsplat", "lerf_opengaussian", "three_dovs", "scannet", "hierarchy")
+BUILT_IN = (
+    "lerf",
+    "lerf_langsplat",
+    "lerf_opengaussian",
+    "three_dovs",
+    "scannet",
+    "openhype",
+    "hierarchy",
+)
 """The built-in protocol modules, imported (so registered) in report order."""
 
 for _module in BUILT_IN:
