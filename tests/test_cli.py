@@ -453,6 +453,15 @@ def test_bench_compares_variants_on_a_reduced_scene(tmp_path, capsys):
     assert "| synth-small | exact lifting |" in markdown and "Paper orderings" in markdown
     code, _, err = run(["bench", "-o", str(out), "--variants", "no such thing"], capsys)
     assert code == 2 and "unknown 'no such thing'" in err
+    # stand-ins named by the flag, before any work
+    for flags, message in (
+        (["--stand-ins", "clip"], "--stand-ins: unknown 'clip' in 'clip'"),
+        (["--stand-ins", "clip-like:surroundings=2"], "--stand-ins: 'clip-like:surroundings=2': "),
+        (["--clip-like", "--clip-grid"], "--clip-like: and --clip-grid choose different"),
+    ):
+        code, _, err = run(["bench", "-o", str(tmp_path / "never"), *flags], capsys)
+        assert code == 2 and message in " ".join(err.split()), err
+        assert not (tmp_path / "never").exists()
 
 
 # --- guidance guards, the recorded text model, messages in flags ---------------------------------

@@ -83,10 +83,11 @@ def test_stand_in_mixes_drift_confusion_and_surroundings_as_computed_by_hand(toy
     assert subparts["mug body"] == MaskContext(("mug body", "mug"), "table")
     assert dict(zip(masks[2].names, contexts[2]))["table"] == MaskContext((), "mug")
     embeddings = [mask_embeddings(masks[k].names, k, contexts[k], OneHot(), config) for k in (0, 1)]
-    # coffee: 0.4·b(coffee) + 0.6·b(mug body), its parent's name, b(x) = 0.75·x + 0.25·x's
+    # coffee: 0.4·b(coffee) + 0.6·(0.5·b(mug body) + 0.5·b(mug)), b(x) = 0.75·x + 0.25·x's
     # look-alike (coffee/soil, mug body/bottle body, mug/bottle); no other object borders it
     assert _weights(embeddings[0][masks[0].names.index("coffee")]) == pytest.approx({
-        "coffee": 0.3, "soil": 0.1, "mug body": 0.45, "bottle body": 0.15,
+        "coffee": 0.3, "soil": 0.1, "mug body": 0.225, "bottle body": 0.075, "mug": 0.225,
+        "bottle": 0.075,
     })  # fmt: skip
     # the handle's sub-part is the handle's part (same name, same crop): it starts at the part,
     # 0.5·handle + 0.5·b(mug)

@@ -1,13 +1,15 @@
 """Calibrated confidence of query answers, against the scene's own distribution (docs/query.md).
 
 Raw cosines and relevancies mean different things in different embedding spaces (CLIP's are
-compressed into a narrow band, MiniLM's are not) and in different scenes. Each query is
-therefore read against a *null*: how well the 80 COCO class names (:data:`NULL_PHRASES`, a
-fixed, generic vocabulary chosen by nobody here) match the same scene. For every null phrase
-the best cosine over the scene's candidate regions is taken; their mean μ and standard deviation
-σ describe how close "some ordinary thing" gets in this scene and this space. A region's cosine
-with the query becomes the score ``z = (cosine − μ) / σ``, and two logistic calibrations turn
-scores into probabilities:
+compressed into a narrow band, MiniLM's are not) and in different scenes. Cosines are therefore
+read on features centred on the scene's mean feature
+(:meth:`thgs.query.FieldQuery.centred_similarity`), and each query against a *null*: how well
+the 80 COCO class names (:data:`NULL_PHRASES`, a fixed, generic vocabulary chosen by nobody
+here) match the same scene. For every null phrase the best centred cosine over the scene's
+candidate regions is taken; their mean μ and standard deviation σ describe how close "some
+ordinary thing" gets in this scene and this space. A region's centred cosine with the query
+becomes the score ``z = (cosine − μ) / σ``, and two logistic calibrations turn scores into
+probabilities:
 
 - **region confidence** ``σ(a_r z + b_r)``: the probability that the region belongs to what was
   asked (most of its Gaussians lie in it);
@@ -15,9 +17,10 @@ scores into probabilities:
   probability that the scene holds what the query names at all.
 
 Both pairs of constants were fitted (logistic regression, L2 weight 1e-3) on synth-small seeds
-0–2 and are reported on seeds 5–7 (``benchmarks/bench_confidence.py``; docs/query.md). They are
-measured on the MiniLM stand-in for CLIP; with real CLIP the scores are the same kind of number
-(distance from the scene's null in units of its spread) but the calibration is not measured.
+0–2 with name-perfect and CLIP-like stand-in features and are reported on seeds 5–7
+(``benchmarks/bench_confidence.py``; docs/query.md). They are measured on the MiniLM stand-in
+for CLIP; with real CLIP the scores are the same kind of number (distance from the scene's null
+in units of its spread) but the calibration is not measured.
 """
 
 from __future__ import annotations
@@ -52,10 +55,10 @@ NULL_PHRASES = (
 )  # fmt: skip
 """The 80 COCO class names: the generic vocabulary each scene's null is measured with."""
 
-REGION_CALIBRATION = (1.94, -4.20)
+REGION_CALIBRATION = (1.50, -3.19)
 """(slope, offset) of the region confidence: σ(slope · z + offset)."""
 
-PRESENCE_CALIBRATION = (3.30, -3.61)
+PRESENCE_CALIBRATION = (3.47, -5.01)
 """(slope, offset) of the presence confidence: σ(slope · z_best + offset)."""
 
 

@@ -154,7 +154,7 @@ class QueryConfig:
         keep: paper mode: regions kept from the pool by relevancy (3).
         extent: auto mode: how far below the best region's cosine, as a share of the best's
             lead over the median region (the query's spread), a region may be and still be
-            selected (0.15, chosen on synthetic seeds 0–4; docs/query.md).
+            selected (0.1, chosen on synthetic seeds 0–4; docs/query.md).
         hierarchical: auto mode: judge each region against the regions inside it (descend
             from the objects, :func:`select_auto`); False selects every region past the cut
             wherever it is, as thgs did before (nested fields only; others are always flat).
@@ -187,12 +187,12 @@ class QueryConfig:
     levels: tuple[int, ...] | None = None
     per_level: int = 3
     keep: int = 3
-    extent: float = 0.15
+    extent: float = 0.1
     hierarchical: bool = True
     descend: float = 0.05
     siblings: float = 0.6
     centred: bool = True
-    min_score: float = 1.2
+    min_score: float = 1.05
     level: int = 3
     top: int = 1
     threshold: float | None = None
@@ -430,14 +430,14 @@ def select_auto(
     scores: dict[int, np.ndarray],
     similarities: dict[int, np.ndarray],
     candidates: dict[int, np.ndarray],
-    extent: float = 0.15,
+    extent: float = 0.1,
     threshold: float = 0.5,
     *,
     parents: Sequence[np.ndarray] | None = None,
     descend: float = 0.05,
     siblings: float = 0.6,
     null: NullModel | None = None,
-    min_score: float = 1.2,
+    min_score: float = 1.05,
 ) -> AutoChoice:
     """The automatic selection of one query (module docstring, docs/query.md).
 

@@ -24,8 +24,9 @@ effects of CLIP on LangSplat-style crops (the mask cut out, the rest blacked out
 each with its own setting (:class:`OracleConfig`, :func:`mask_embeddings`):
 
 - *parent drift* — a part cut out of its object still looks like the object (a mug's handle like a
-  mug, a table leg like a table): a sub-part's embedding drifts towards its part's name, a part's
-  towards its object's name; objects have no parent;
+  mug, a table leg like a table): a part's embedding drifts towards its object's name, a
+  sub-part's towards its part as the part looks (so, through it, towards the object too);
+  objects have no parent;
 - *surroundings* — what borders the mask leaks in a little (the crop's box holds some of it, and
   the mask's edge shows it), although the background is blacked out;
 - *confusion* — things that look alike share names (:data:`thgs.synthetic.catalog.
@@ -124,8 +125,8 @@ class OracleConfig:
             1 keeps every ground-truth component).
         feature_noise: standard deviation of the noise added to a mask's embedding (as a
             vector norm: ``f = normalize(e + feature_noise · g / √D)``, g standard normal).
-        subpart_drift: share of a sub-part mask's embedding that is its part's name; in
-            [0, 1]. 0: name-perfect.
+        subpart_drift: share of a sub-part mask's embedding that is its part's (the part's
+            own mixture, which drifts towards the object in turn); in [0, 1]. 0: name-perfect.
         part_drift: share of a part mask's embedding that is its object's name; in [0, 1].
         surroundings: share of a mask's embedding that is the name of the object bordering
             it (the object other than its own under most of a ``context_radius``-pixel ring
@@ -145,10 +146,10 @@ class OracleConfig:
         context_radius: width in pixels of the ring that defines a mask's surroundings.
         seed: base of every random draw (view i uses ``[seed, i]``).
 
-    The four stand-in settings mix unit embeddings: for a mask named n whose parent is named a
-    (the next level's node under most of it), ``(1 − d) b(n) + d b(a)`` with d the drift of the
-    mask's level and ``b(x) = (1 − c) e(x) + c e(look-alike of x)``, then ``e = (1 − s) · that
-    + s b(surroundings)`` (see :func:`mask_embeddings`).
+    The four stand-in settings mix unit embeddings: for a mask named n whose ancestors are a₁
+    (parent) and a₂ (grandparent), ``chain = (1 − d₁) b(n) + d₁ ((1 − d₂) b(a₁) + d₂ b(a₂))``
+    with the drifts of the mask's level and the next and ``b(x) = (1 − c) e(x) + c e(look-alike
+    of x)``, then ``e = (1 − s) chain + s b(surroundings)`` (see :func:`mask_embeddings`).
     """
 
     severity: float = 0.5
@@ -241,9 +242,9 @@ STAND_INS: Mapping[str, Mapping[str, float]] = MappingProxyType(
 )
 """Named settings of the CLIP stand-in (docs/synthetic.md): ``name-perfect`` (every setting 0:
 each mask's feature is its name's embedding plus noise) and ``clip-like``, one reasoned point:
-a part or sub-part crop is 60 % its parent's name (a handle cut out of a mug still looks like a
-mug), the blacked-out background leaks 10 %, a look-alike's name 25 %, and cosines are
-compressed into CLIP's band."""
+a part or sub-part crop is 60 % its parent (a handle cut out of a mug still looks like a mug;
+a sub-part's parent as the part itself looks), the blacked-out background leaks 10 %, a
+look-alike's name 25 %, and cosines are compressed into CLIP's band."""
 
 CLIP_GRID: tuple[str, ...] = (
     "clip-like",
@@ -672,12 +673,14 @@ def mask_embeddings(
     surroundings and confusion (:class:`OracleConfig`).
 
     With ``b(x) = (1 − c) e(x) + c e(x')`` (x' the look-alike of x, :data:`thgs.synthetic.
-    catalog.CONFUSABLE_NAMES`; ``e(x)`` where x has none), a mask named n whose ancestors are
-    ``a₁`` (parent), ``a₂`` (grandparent) gets ``(1 − d_ℓ) b(n) + d_ℓ b(a₁)``, d₀ the sub-part
-    drift and d₁ the part drift (an object mask, or one without a parent: ``b(n)``). A mask
-    named like its parent (a part with one sub-part, or a part-sized mask among the
-    sub-parts) is the parent's crop and is read as the parent's: ``(1 − d_ℓ₊₁) b(a₁) +
-    d_ℓ₊₁ b(a₂)``. Then ``e = (1 − s) · that + s b(surroundings)`` where the mask has
+    catalog.CONFUSABLE_NAMES`; ``e(x)`` where x has none): the chain of the mask's name and
+    its ancestors ``n, a₁, a₂`` gives ``(1 − d_ℓ) b(n) + d_ℓ ((1 − d_ℓ₊₁) b(a₁) + d_ℓ₊₁ b(a₂))``
+    (d₀ the sub-part drift, d₁ the part drift; the last name of a chain takes the remaining
+    weight): a sub-part drifts towards its part as the part itself looks. Mixing names alone
+    (``(1 − d) b(n) + d b(a₁)`` for a sub-part too) would make a bear's ear more like "bear
+    head" than the bear's head is, which no crop does. A mask named like its parent (a part
+    with one sub-part, or a part-sized mask among the sub-parts) is the parent's crop and starts
+    the chain there. Then ``e = (1 − s) chain + s b(surroundings)`` where the mask has
     surroundings.
     """
     drifts = (config.subpart_drift, config.part_drift)
@@ -701,11 +704,11 @@ def mask_embeddings(
         chain, start = [name, *context.ancestors], level
         while len(chain) > 1 and chain[0] == chain[1]:
             chain, start = chain[1:], start + 1
-        if len(chain) == 1:
-            out[i] = blurred(chain[0])
-        else:
-            drift = drifts[start]
-            out[i] = (1.0 - drift) * blurred(chain[0]) + drift * blurred(chain[1])
+        weight = 1.0
+        for j, link in enumerate(chain):
+            drift = drifts[start + j] if j < len(chain) - 1 else 0.0
+            out[i] += weight * (1.0 - drift) * blurred(link)
+            weight *= drift
         if context.surroundings is not None and config.surroundings > 0:
             out[i] = (1.0 - config.surroundings) * out[i] + config.surroundings * blurred(
                 context.surroundings
