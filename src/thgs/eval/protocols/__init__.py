@@ -17,6 +17,7 @@ parts), ``hierarchy`` (synthetic scenes).
 from __future__ import annotations
 
 import importlib
+import logging
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -37,6 +38,7 @@ __all__ = [
     "protocol_names",
     "register_protocol",
     "register_source",
+    "scene_folder",
     "source_names",
     "sources",
 ]
@@ -120,8 +122,47 @@ class Protocol:
     evaluate: Callable[[EvalContext], Sequence[ProtocolResult]]
 
 
+logger = logging.getLogger(__name__)
+
 _SOURCES: dict[str, GroundTruthSource] = {}
 _PROTOCOLS: dict[str, Protocol] = {}
+
+
+def scene_folder(given: Path, scene: str, container: str, what: str, files: str, flag: str) -> Path:
+    """A scene's ground-truth folder from a folder given for it (``GroundTruthSource.given``):
+    the folder itself when it holds ``*.json`` files, else its ``<scene>/`` sub-folder (the
+    folder of every scene's), else ``<container>/<scene>/`` in it (the benchmark's root).
+
+    Args:
+        given: the path given (a file is returned as it is).
+        scene: the scene's name (its dataset folder's).
+        container: the folder of every scene's ground truth in the benchmark's root.
+        what: the files looked for, for the message (e.g. "LERF-OVS label files (frame_*.json)").
+        files: their pattern, for the message (e.g. "frame_*.json").
+        flag: the flag that names the folder, for the message.
+
+    Raises:
+        InputError: none holds ``*.json`` files (the message lists the sub-folders there are).
+    """
+    if not given.is_dir() or _has_json(given):
+        return given
+    for inside in (given / scene, given / container / scene):
+        if _has_json(inside):
+            logger.info("ground truth of %s: %s", scene, inside)
+            return inside
+    folders = sorted(child.name for child in given.iterdir() if child.is_dir())
+    holds = f"its folders: {', '.join(folders)}" if folders else "it holds no folder"
+    raise InputError(
+        given,
+        f"holds no {what}, nor {scene}/ or {container}/{scene}/ with them ({holds}; {scene!r} is "
+        f"the dataset folder's name); pass the folder of the scene's {files} with {flag}",
+    )
+
+
+def _has_json(folder: Path) -> bool:
+    return folder.is_dir() and any(
+        path.name.endswith(".json") and not path.name.startswith(".") for path in folder.iterdir()
+    )
 
 
 def register_source(source: GroundTruthSource) -> GroundTruthSource:

@@ -6,7 +6,6 @@ the other two LERF protocols read too."""
 
 from __future__ import annotations
 
-import logging
 import os
 from pathlib import Path
 
@@ -18,11 +17,10 @@ from thgs.eval.protocols import (
     Protocol,
     register_protocol,
     register_source,
+    scene_folder,
 )
 
 __all__ = ["find_lerf_labels", "frames", "lerf_label_folder"]
-
-logger = logging.getLogger(__name__)
 
 
 def _has_frames(folder: Path) -> bool:
@@ -56,10 +54,6 @@ def find_lerf_labels(dataset: Path) -> Path | None:
     return next(iter(found.values()), None)
 
 
-def _has_json(folder: Path) -> bool:
-    return folder.is_dir() and any(path.suffix == ".json" for path in folder.iterdir())
-
-
 def lerf_label_folder(given: Path, scene: str) -> Path:
     """The label folder of ``scene`` from a folder given for it: the folder itself when it holds
     ``*.json`` label files, else its ``<scene>/`` sub-folder (LangSplat's ``lerf_ovs/label``,
@@ -69,20 +63,8 @@ def lerf_label_folder(given: Path, scene: str) -> Path:
     Raises:
         InputError: none holds label files (the message lists the sub-folders there are).
     """
-    if not given.is_dir() or _has_json(given):
-        return given
-    for inside in (given / scene, given / "label" / scene):
-        if _has_json(inside):
-            logger.info("LERF-OVS labels of %s: %s", scene, inside)
-            return inside
-    folders = sorted(child.name for child in given.iterdir() if child.is_dir())
-    holds = f"its folders: {', '.join(folders)}" if folders else "it holds no folder"
-    raise InputError(
-        given,
-        f"holds no LERF-OVS label files (frame_*.json), nor {scene}/ or label/{scene}/ with "
-        f"them ({holds}; {scene!r} is the dataset folder's name); pass the folder of the "
-        "scene's frame_*.json with --labels",
-    )
+    what = "LERF-OVS label files (frame_*.json)"
+    return scene_folder(given, scene, "label", what, "frame_*.json", "--labels")
 
 
 def frames(context: EvalContext):

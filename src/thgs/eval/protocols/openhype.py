@@ -8,7 +8,6 @@ paper's. Also registers the ground truth: a scene's annotation folder
 
 from __future__ import annotations
 
-import logging
 import os
 from dataclasses import replace
 from pathlib import Path
@@ -22,11 +21,11 @@ from thgs.eval.protocols import (
     Protocol,
     register_protocol,
     register_source,
+    scene_folder,
 )
 
 __all__ = ["ANNOTATION_FOLDER", "find_openhype_annotations", "openhype_annotation_folder"]
 
-logger = logging.getLogger(__name__)
 
 ANNOTATION_FOLDER = "openhype_scannetpp_benchmark"
 """The folder of every scene's annotations, ``<scene id>/`` each (OpenHype's configs'
@@ -78,20 +77,8 @@ def openhype_annotation_folder(given: Path, scene: str) -> Path:
     Raises:
         InputError: none holds annotation files (the message lists the sub-folders there are).
     """
-    if not given.is_dir() or _has_json(given):
-        return given
-    for inside in (given / scene, given / ANNOTATION_FOLDER / scene):
-        if _has_json(inside):
-            logger.info("OpenHype annotations of %s: %s", scene, inside)
-            return inside
-    folders = sorted(child.name for child in given.iterdir() if child.is_dir())
-    holds = f"its folders: {', '.join(folders)}" if folders else "it holds no folder"
-    raise InputError(
-        given,
-        f"holds no OpenHype annotation files (*.json), nor {scene}/ or "
-        f"{ANNOTATION_FOLDER}/{scene}/ with them ({holds}; {scene!r} is the dataset folder's "
-        "name)",
-    )
+    what = "OpenHype annotation files (*.json)"
+    return scene_folder(given, scene, ANNOTATION_FOLDER, what, "*.json", "--openhype")
 
 
 def frames(context: EvalContext):
