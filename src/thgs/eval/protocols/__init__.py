@@ -35,6 +35,7 @@ __all__ = [
     "GroundTruthSource",
     "Protocol",
     "get_protocol",
+    "one_place",
     "protocol_names",
     "register_protocol",
     "register_source",
@@ -126,6 +127,41 @@ logger = logging.getLogger(__name__)
 
 _SOURCES: dict[str, GroundTruthSource] = {}
 _PROTOCOLS: dict[str, Protocol] = {}
+
+
+def one_place(
+    dataset: Path,
+    candidates: Sequence[Path],
+    holds: Callable[[Path], bool],
+    what: str,
+    choose: str,
+) -> Path | None:
+    """The one candidate folder that ``holds`` ground truth, or None when none does
+    (``GroundTruthSource.find``).
+
+    Args:
+        dataset: the dataset folder, for the message.
+        candidates: the places to look, in order (the same folder twice counts once).
+        holds: whether a folder holds this ground truth.
+        what: the ground truth, for the message (e.g. "LERF-OVS labels (frame_*.json)").
+        choose: how the user decides, for the message (e.g. "with --labels (lerf= in
+            Python)").
+
+    Raises:
+        InputError: two different folders hold it (the message names both).
+    """
+    found: dict[Path, Path] = {}
+    for candidate in candidates:
+        if holds(candidate):
+            found.setdefault(candidate.resolve(), candidate)
+    if len(found) > 1:
+        raise InputError(
+            dataset,
+            f"{what} in two places: "
+            + " and ".join(map(str, found.values()))
+            + f"; choose one {choose}",
+        )
+    return next(iter(found.values()), None)
 
 
 def scene_folder(given: Path, scene: str, container: str, what: str, files: str, flag: str) -> Path:

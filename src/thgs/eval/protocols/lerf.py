@@ -9,12 +9,12 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from thgs.errors import InputError
 from thgs.eval.evaluate import evaluate_lerf, read_lerf_frames
 from thgs.eval.protocols import (
     EvalContext,
     GroundTruthSource,
     Protocol,
+    one_place,
     register_protocol,
     register_source,
     scene_folder,
@@ -40,18 +40,8 @@ def find_lerf_labels(dataset: Path) -> Path | None:
     """
     dataset = Path(os.path.abspath(dataset))
     candidates = (dataset / "label", dataset.parent / "label" / dataset.name, dataset)
-    found: dict[Path, Path] = {}
-    for candidate in candidates:
-        if _has_frames(candidate):
-            found.setdefault(candidate.resolve(), candidate)
-    if len(found) > 1:
-        raise InputError(
-            dataset,
-            "LERF-OVS labels (frame_*.json) in two places: "
-            + " and ".join(map(str, found.values()))
-            + "; choose one with --labels (lerf= in Python)",
-        )
-    return next(iter(found.values()), None)
+    what = "LERF-OVS labels (frame_*.json)"
+    return one_place(dataset, candidates, _has_frames, what, "with --labels (lerf= in Python)")
 
 
 def lerf_label_folder(given: Path, scene: str) -> Path:

@@ -12,13 +12,13 @@ import os
 from dataclasses import replace
 from pathlib import Path
 
-from thgs.errors import InputError
 from thgs.eval.evaluate import evaluate_openhype
 from thgs.eval.openhype import read_openhype_annotations
 from thgs.eval.protocols import (
     EvalContext,
     GroundTruthSource,
     Protocol,
+    one_place,
     register_protocol,
     register_source,
     scene_folder,
@@ -54,18 +54,8 @@ def find_openhype_annotations(dataset: Path) -> Path | None:
         dataset.parent / ANNOTATION_FOLDER / dataset.name,
         dataset.parent.parent / ANNOTATION_FOLDER / dataset.name,
     )
-    found: dict[Path, Path] = {}
-    for candidate in candidates:
-        if _has_json(candidate):
-            found.setdefault(candidate.resolve(), candidate)
-    if len(found) > 1:
-        raise InputError(
-            dataset,
-            "OpenHype annotations in two places: "
-            + " and ".join(map(str, found.values()))
-            + "; choose one (openhype= in Python)",
-        )
-    return next(iter(found.values()), None)
+    choose = "with --openhype (openhype= in Python)"
+    return one_place(dataset, candidates, _has_json, "OpenHype annotations", choose)
 
 
 def openhype_annotation_folder(given: Path, scene: str) -> Path:
