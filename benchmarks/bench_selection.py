@@ -73,7 +73,7 @@ class Scene:
         self.guidance = load_guidance(self.folder / "language_features", self.scene.cameras)
         self.cache = out / "fields" / self.folder.name
         self.lifts = out / "lifts"
-        self._lifted = self._merged = self._max_ids = None
+        self._lifted = self._merged = self._views = None
 
     @property
     def lifted(self):
@@ -88,8 +88,8 @@ class Scene:
         if self._merged is None:
             path = self.cache / "merged.npz"
             digest = _digest({"field": self.config.to_json()}, code=False)
-            if path.is_file() and str(np.load(path)["settings"]) == digest:
-                stored = np.load(path)
+            stored = np.load(path) if path.is_file() else None
+            if stored is not None and str(stored["settings"]) == digest:
                 neighbors = gaussian_neighbors(self.scene.gaussians, self.config.merge.neighbors)
                 levels = RegionLevels.from_labels(stored["labels"])
                 self._merged = MergedLevels(levels, neighbors, {})
@@ -102,21 +102,19 @@ class Scene:
     def guidance_for(self, oracle: OracleConfig) -> list:
         """The dataset's guidance with the features ``oracle`` gives its masks (the masks
         themselves are the dataset's: they do not depend on the stand-in)."""
-        sizes = dict(zip(("gaussians", "views"), self.size))
-        overrides = {key: value for key, value in sizes.items() if value is not None}
-        synthetic = generate_scene(
-            preset("synth-small", seed=self.seed, kind=self.kind, **overrides)
-        )
-        if self._max_ids is None:
-            background = DatasetConfig().background
-            self._max_ids = [
-                render_view(synthetic, i, background)[1] for i in range(len(self.guidance))
-            ]
-        views = []
-        for index, (stored, max_id) in enumerate(zip(self.guidance, self._max_ids)):
-            made = oracle_guidance(
-                stored.stem, max_id, synthetic.hierarchy, self.encoder, oracle, index
+        if self._views is None:  # the hierarchy and each view's max-weight ids, once
+            sizes = dict(zip(("gaussians", "views"), self.size))
+            overrides = {key: value for key, value in sizes.items() if value is not None}
+            synthetic = generate_scene(
+                preset("synth-small", seed=self.seed, kind=self.kind, **overrides)
             )
+            background = DatasetConfig().background
+            max_ids = [render_view(synthetic, i, background)[1] for i in range(len(self.guidance))]
+            self._views = (synthetic.hierarchy, max_ids)
+        hierarchy, max_ids = self._views
+        views = []
+        for index, (stored, max_id) in enumerate(zip(self.guidance, max_ids)):
+            made = oracle_guidance(stored.stem, max_id, hierarchy, self.encoder, oracle, index)
             if not np.array_equal(made.segments, stored.segments):
                 raise RuntimeError(f"{self.folder}: the masks of {stored.stem} differ")
             views.append(made)

@@ -729,8 +729,7 @@ def build_levels(
         InputError: ``lifted`` was made with other lifting settings than ``config``'s, or the
             guidance has no feature dimension.
     """
-    _check_lifted(lifted, config)
-    _check_features(guidance)
+    _check_features(guidance)  # before the partition, not after it
     merged = merge_lifted(lifted, config, progress=progress)
     return describe_levels(merged, lifted, guidance, config, progress=progress)
 

@@ -380,16 +380,12 @@ class AutoChoice:
     best_score: float | None = None
 
 
-def _children(parents: Sequence[np.ndarray]) -> dict[tuple[int, int], np.ndarray]:
-    """(level, region) → [C] its child regions, for levels 2 and 3; ``parents[0]`` maps level 1
-    to level 2, ``parents[1]`` level 2 to level 3."""
-    children = {}
-    for level, upward in ((2, parents[0]), (3, parents[1])):
-        order = np.argsort(upward, kind="stable")
-        bounds = np.searchsorted(upward[order], np.arange(int(upward.max(initial=-1)) + 2))
-        for region in range(len(bounds) - 1):
-            children[(level, region)] = order[bounds[region] : bounds[region + 1]]
-    return children
+def _children(upward: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The child regions of every region one level up, as ``(order, bounds)``: region r's
+    children are ``order[bounds[r] : bounds[r + 1]]``; ``upward`` [R] maps each child to its
+    region."""
+    order = np.argsort(upward, kind="stable")
+    return order, np.searchsorted(upward[order], np.arange(int(upward.max(initial=-1)) + 2))
 
 
 def _descend(
@@ -406,7 +402,7 @@ def _descend(
         below = np.maximum(own[level - 1], inside[level - 1])
         inside[level] = np.full(len(own[level]), -np.inf)
         np.maximum.at(inside[level], upward, below)
-    children = _children(parents)
+    children = {2: _children(parents[0]), 3: _children(parents[1])}
     chosen: list[tuple[int, int]] = []
     stack = [(3, int(region)) for region in range(len(own[3]))][::-1]
     while stack:
@@ -418,7 +414,8 @@ def _descend(
             continue
         if level == 1:
             continue
-        kids = children.get((level, region), np.zeros(0, dtype=np.int64))
+        order, bounds = children[level]
+        kids = order[bounds[region] : bounds[region + 1]] if region + 1 < len(bounds) else order[:0]
         if rise > margin:  # the query is about something inside it
             best = np.maximum(own[level - 1][kids], inside[level - 1][kids])
             kids = kids[best - value >= siblings * rise]

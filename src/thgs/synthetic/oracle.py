@@ -306,8 +306,8 @@ def stand_in_spec(config: OracleConfig) -> str:
     that differ."""
     settings = config.stand_in
     best: tuple[int, str] | None = None
-    for name, named in STAND_INS.items():
-        base = {key: 0.0 for key in _STAND_IN_FIELDS} | dict(named)
+    for name in STAND_INS:
+        base = stand_in(name)
         changed = {k: v for k, v in settings.items() if v != base[k]}
         if changed.keys() >= {"subpart_drift", "part_drift"} and (
             changed["subpart_drift"] == changed["part_drift"]
@@ -581,15 +581,15 @@ def pool_default(levels: list[LevelMasks]) -> tuple[LevelMasks, list[tuple[int, 
     return pooled, [(level, index) for _, level, index, _ in kept]
 
 
+_COMPRESSION_SEED = 20250419
+
+
 def compression_direction(dim: int) -> np.ndarray:
     """[dim] float64 unit vector: the fixed direction :attr:`OracleConfig.compression` pulls
     every feature towards (CLIP's image embeddings share one that its text embeddings lack).
     The same for every scene and seed, as it belongs to the model, not the scene."""
     direction = np.random.default_rng(_COMPRESSION_SEED).normal(size=dim)
     return direction / np.linalg.norm(direction)
-
-
-_COMPRESSION_SEED = 20250419
 
 
 @dataclass(frozen=True)
@@ -651,14 +651,8 @@ def mask_context(
     )
 
 
-def _look_alikes() -> dict[str, str]:
-    partners = {}
-    for a, b in CONFUSABLE_NAMES:
-        partners[a], partners[b] = b, a
-    return partners
-
-
-_LOOK_ALIKES = _look_alikes()
+_LOOK_ALIKES = {a: b for pair in CONFUSABLE_NAMES for a, b in (pair, pair[::-1])}
+"""Each confusable name's look-alike, both ways."""
 
 
 def mask_embeddings(
@@ -786,19 +780,11 @@ def _level_features(
     rng: np.random.Generator,
 ) -> np.ndarray:
     """[len(masks), D] float32 features of one level's masks (module docstring)."""
+    embeddings = context = None
     if config.clip_like_effects:
         contexts = mask_contexts(masks, level, maps, hierarchy, config.context_radius)
         embeddings = mask_embeddings(masks.names, level, contexts, encoder, config)
-        return mask_features(
-            masks.names,
-            encoder,
-            config.feature_noise,
-            rng,
-            embeddings=embeddings,
-            compression=config.compression,
-        )
-    context = None
-    if config.context_mix > 0:
+    elif config.context_mix > 0:
         context = mask_context(masks, level, maps, hierarchy, config.context_radius)
     return mask_features(
         masks.names,
@@ -807,6 +793,7 @@ def _level_features(
         rng,
         context,
         config.context_mix,
+        embeddings=embeddings,
         compression=config.compression,
     )
 
