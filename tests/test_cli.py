@@ -113,6 +113,29 @@ def test_build_writes_a_field_of_the_scene(small_dataset, tmp_path, capsys):
     assert not config["repeats"]["enabled"] and config["features"]["visibility_power"] == 2
 
 
+def test_build_gives_the_same_bytes_with_any_number_of_threads(small_dataset, tmp_path, capsys):
+    # blocks of 1,000 Gaussians: the partition's solver processes run side by side
+    blocks = ["--set", "superpoints.partition.block_size=1000"]
+    fields = []
+    for threads in (1, 2, 8):  # each in a fresh process
+        out = tmp_path / f"threads{threads}.thgs"
+        command = "import sys; from thgs.cli import entrypoint; sys.exit(entrypoint())"
+        argv = ["build", str(small_dataset), "-o", str(out), "--threads", str(threads), *blocks]
+        subprocess.run(
+            [sys.executable, "-c", command, *argv],
+            check=True,
+            capture_output=True,
+            env={**os.environ, "NUMBA_NUM_THREADS": "8"},
+        )
+        fields.append(out.read_bytes())
+    assert fields[0] == fields[1] == fields[2]
+    code, _, err = run(
+        ["build", str(small_dataset), "-o", str(tmp_path / "x.thgs"), "--threads", "0"], capsys
+    )
+    assert code == 2 and "--threads" in err and "from 1 to" in err
+    assert not (tmp_path / "x.thgs").exists()
+
+
 def test_build_names_missing_guidance(small_dataset, tmp_path, capsys):
     missing = tmp_path / "nowhere"
     code, out, err = run(

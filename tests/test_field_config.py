@@ -256,3 +256,21 @@ def test_guidance_is_found_and_its_space_guessed(small_dataset, tmp_path):
         guidance_space(tmp_path, [View(384)])
     (tmp_path / "embedding.json").write_text('{"space": "my/space", "dim": 384}')
     assert guidance_space(tmp_path, [View(384)]) == "my/space"
+
+
+def test_a_field_recorded_with_the_solver_thread_count_and_no_blocks_reads(small_field):
+    field = load_field(small_field)
+    recorded = recorded_config(field).superpoints.partition
+    assert recorded.block_size == PartitionConfig().block_size > 0
+    superpoints = field.config["superpoints"]
+    partition = {k: v for k, v in superpoints["partition"].items() if k != "block_size"}
+    older = dataclasses.replace(
+        field,
+        config={
+            **field.config,
+            "superpoints": {**superpoints, "partition": {**partition, "max_num_threads": 0}},
+        },
+    )
+    assert recorded_config(older).superpoints.partition == dataclasses.replace(
+        recorded, block_size=0
+    )

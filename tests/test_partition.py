@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 from dataclasses import replace
 
 import numpy as np
@@ -11,13 +12,22 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from thgs import Gaussians
-from thgs.errors import InputError
+from thgs.errors import InputError, ThgsError
 from thgs.eval import purity
 from thgs.graph import GraphConfig, KnnGraph, PartitionConfig, knn_graph, partition
-from thgs.graph.partition import _connected, _edge_weights, _features, _polished
+from thgs.graph.partition import (
+    _blocks,
+    _connected,
+    _edge_weights,
+    _features,
+    _joined,
+    _polished,
+)
 from thgs.pipeline import SuperpointConfig
 from thgs.scene.gaussians import SH_C0
 from thgs.synthetic import generate_scene, preset
+
+partition_module = sys.modules["thgs.graph.partition"]
 
 RED, GREEN, BLUE, YELLOW = [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 1.0, 0.0]
 
@@ -68,13 +78,11 @@ def test_touching_blobs_of_different_colour_split_along_the_colour():
     assert pieces(graph) == 1  # one connected graph: the solver has to cut it
     labels = partition(gaussians, graph, graph.distances)
     np.testing.assert_array_equal(labels, truth)
-    # the same geometry in one colour: the reference's 2 split alternatives keep it whole; the
-    # default's 6 find a cut across the neck between the blobs, which is a lower objective
+    # the same geometry in one colour: the solver cuts across the neck between the blobs, a
+    # lower objective than keeping it whole
     one_colour = surfels(gaussians.means.numpy(), np.tile(RED, (800, 1)))
     graph = knn_graph(one_colour)
-    reference = replace(PartitionConfig(), split_alternatives=2)
-    whole = partition(one_colour, graph, graph.distances, reference)
-    np.testing.assert_array_equal(whole, 0)
+    whole = np.zeros(800, dtype=np.int32)
     cut = partition(one_colour, graph, graph.distances)
     assert cut.max() == 1
     x = one_colour.means.numpy()[:, 0]
@@ -132,7 +140,7 @@ def test_superpoints_are_connected_contiguous_and_deterministic():
     adjacency = coo_matrix((np.ones(inside.sum()), (rows[inside], columns[inside])), (3000, 3000))
     assert connected_components(adjacency, directed=False)[0] == count
     np.testing.assert_array_equal(partition(gaussians, graph, graph.distances), labels)
-    single = PartitionConfig(max_num_threads=1)
+    single = PartitionConfig()
     np.testing.assert_array_equal(
         partition(gaussians, graph, graph.distances, single),
         partition(gaussians, graph, graph.distances, single),
@@ -239,7 +247,7 @@ def test_more_split_alternatives_keep_a_flat_object_off_the_table_top():
     graph = knn_graph(scene.gaussians)
     purities, books_with_the_table = {}, {}
     for alternatives in (2, 6):
-        config = replace(PartitionConfig.lerf(), split_alternatives=alternatives, max_num_threads=1)
+        config = replace(PartitionConfig.lerf(), split_alternatives=alternatives)
         labels = partition(scene.gaussians, graph, graph.distances, config)
         purities[alternatives] = purity(labels, objects)
         majority = np.array(
@@ -336,9 +344,121 @@ def test_pieces_are_made_connected_and_small_ones_join_their_strongest_neighbour
 def test_polishing_lowers_the_objective_on_a_noisy_plane():
     gaussians = noisy_plane(seed=5)
     graph = knn_graph(gaussians)
-    config = PartitionConfig(max_num_threads=1)
+    config = PartitionConfig()
     solver = partition(gaussians, graph, graph.distances, replace(config, polish=False))
     polished = partition(gaussians, graph, graph.distances, config)
     assert objective(gaussians, graph, polished, config) < objective(
         gaussians, graph, solver, config
     )
+
+
+def test_blocks_halve_each_large_piece_at_the_median_of_its_longest_axis():
+    # ten points along x (the longest axis) and a separate piece of two
+    means = np.column_stack([np.r_[np.arange(10.0), 50.0, 51.0], np.zeros(12), np.zeros(12)])
+    piece = np.r_[np.zeros(10, dtype=np.int64), 1, 1]
+    block = _blocks(means, piece, np.bincount(piece), 3)
+    groups = sorted(tuple(np.flatnonzero(block == b)) for b in np.unique(block))
+    assert groups == [(0, 1), (2, 3, 4), (5, 6), (7, 8, 9), (10, 11)]
+    np.testing.assert_array_equal(_blocks(means, piece, np.bincount(piece), 0), piece)
+
+
+def test_joining_merges_across_a_seam_only_where_the_energy_falls():
+    # a – b | c – d on a line, the seam between b and c; a, b and c alike, d far off
+    sources, targets = np.array([0, 1, 2]), np.array([1, 2, 3])
+    seam = np.array([False, True, False])
+    cost = np.array([1.0, 1.0, 1.0])
+    features = np.array([[0.0], [0.0], [0.0], [10.0]])
+    joined = _joined(np.array([0, 0, 1, 2]), features, sources, targets, cost, seam)
+    np.testing.assert_array_equal(joined, [0, 0, 0, 2])  # gain 2/3 · 0 − 1 < 0; c–d no seam
+    features[2] = 2.0  # 2/3 · 4 − 1 > 0: apart
+    joined = _joined(np.array([0, 0, 1, 2]), features, sources, targets, cost, seam)
+    np.testing.assert_array_equal(joined, [0, 0, 1, 2])
+
+
+def _joined_slowly(labels, features, sources, targets, cost, seam):
+    """The greedy merging of ``_joined`` by brute force: every step recomputes every pair."""
+    labels = np.unique(labels, return_inverse=True)[1]
+    while True:
+        best = None
+        for x in np.unique(labels):
+            for y in np.unique(labels):
+                if not x < y:
+                    continue
+                between = ((labels[sources] == x) & (labels[targets] == y)) | (
+                    (labels[sources] == y) & (labels[targets] == x)
+                )
+                if not (between & seam).any():
+                    continue
+                nx, ny = (labels == x).sum(), (labels == y).sum()
+                step = features[labels == x].mean(axis=0) - features[labels == y].mean(axis=0)
+                gain = nx * ny / (nx + ny) * step @ step - cost[between].sum()
+                if gain < 0 and (best is None or (gain, x, y) < best):
+                    best = (gain, x, y)
+        if best is None:
+            return np.unique(labels, return_inverse=True)[1]
+        labels = np.where(labels == best[2], best[1], labels)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_joining_matches_its_brute_force_reference(seed):
+    rng = np.random.default_rng(seed)
+    n = 40
+    means = rng.uniform(0, 1, (n, 2))
+    near = np.argsort(((means[:, None] - means[None]) ** 2).sum(-1), axis=1)[:, 1:4]
+    pairs = np.unique(np.sort(np.column_stack([np.repeat(np.arange(n), 3), near.ravel()])), axis=0)
+    sources, targets = pairs[:, 0], pairs[:, 1]
+    block = (means[:, 0] > 0.5).astype(int)
+    seam = block[sources] != block[targets]
+    features = np.column_stack([means, rng.normal(0, 0.3, n)])
+    cost = rng.uniform(0.05, 0.5, len(sources))
+    labels = block * 100 + (means[:, 1] * 4).astype(int)  # stripes, cut at the seam
+    fast = _joined(labels, features, sources, targets, cost, seam)
+    slow = _joined_slowly(labels, features, sources, targets, cost, seam)
+    assert len(np.unique(fast)) < len(np.unique(labels))  # some seam pairs were merged
+    np.testing.assert_array_equal(np.unique(fast, return_inverse=True)[1], slow)
+
+
+def test_blocks_join_into_the_whole_pieces():
+    # two touching blobs of different colours, cut into four blocks across both
+    gaussians, truth = blobs([[0, 0, 0], [0.8, 0, 0]], [RED, BLUE], 1500, 0.3, seed=1)
+    graph = knn_graph(gaussians)
+    config = PartitionConfig(block_size=1000)
+    labels = partition(gaussians, graph, graph.distances, config)
+    np.testing.assert_array_equal(labels, truth)
+
+
+def test_the_result_does_not_depend_on_the_number_of_workers():
+    gaussians = noisy_plane(n=6000, seed=3)
+    graph = knn_graph(gaussians)
+    config = PartitionConfig(block_size=1000)
+    one = partition(gaussians, graph, graph.distances, config, workers=1)
+    assert one.max() + 1 >= 20
+    for workers in (2, 8):
+        np.testing.assert_array_equal(
+            partition(gaussians, graph, graph.distances, config, workers=workers), one
+        )
+    # blocks cost little in the objective: within 3 % of solving the plane whole
+    whole = partition(gaussians, graph, graph.distances, replace(config, block_size=0))
+    assert objective(gaussians, graph, one, config) < 1.03 * objective(
+        gaussians, graph, whole, config
+    )
+
+
+def test_block_size_and_workers_out_of_range_are_refused():
+    with pytest.raises(InputError, match="block_size"):
+        PartitionConfig(block_size=10)
+    gaussians = noisy_plane(n=200)
+    graph = knn_graph(gaussians)
+    for workers in (0, -1, 1.5, True):
+        with pytest.raises(InputError, match="workers"):
+            partition(gaussians, graph, graph.distances, workers=workers)
+
+
+def test_a_failing_solver_process_is_named(monkeypatch):
+    gaussians = noisy_plane(n=3000, seed=3)
+    graph = knn_graph(gaussians)
+    monkeypatch.setattr(
+        partition_module, "_WORKER", "import sys; sys.exit('the solver ran out of memory')"
+    )
+    with pytest.raises(ThgsError, match=r"solver process .* exit code 1: the solver ran out of"):
+        partition(gaussians, graph, graph.distances, PartitionConfig(block_size=1000), workers=2)

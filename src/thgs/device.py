@@ -12,7 +12,7 @@ import torch
 
 from thgs.errors import InputError
 
-__all__ = ["DEVICES", "resolve_device"]
+__all__ = ["DEVICES", "resolve_device", "set_cpu_threads"]
 
 DEVICES = ("auto", "cpu", "cuda", "mps")
 """The device names the command line offers (``cuda:N`` is accepted too)."""
@@ -59,3 +59,24 @@ def resolve_device(name: str | torch.device = "auto") -> torch.device:
     elif device.type != "cpu":
         raise InputError("device", f"unknown device {name!r}; choose one of {DEVICES}")
     return device
+
+
+def set_cpu_threads(count: int, source: str = "threads") -> None:
+    """Use ``count`` CPU threads in this process: numba's (the CPU rasterizer and graph kernels,
+    and the partition's solver processes) and torch's. What is built does not depend on it.
+
+    Raises:
+        InputError: ``count`` is not between 1 and the most numba started with
+            (``NUMBA_NUM_THREADS``, by default the number of cores), named by ``source``.
+    """
+    import numba
+
+    most = numba.config.NUMBA_NUM_THREADS
+    if isinstance(count, bool) or not isinstance(count, int) or not 1 <= count <= most:
+        raise InputError(
+            source,
+            f"must be a whole number from 1 to {most}, got {count!r} (more than the cores: set "
+            "NUMBA_NUM_THREADS before starting)",
+        )
+    numba.set_num_threads(count)
+    torch.set_num_threads(count)

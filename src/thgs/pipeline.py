@@ -462,7 +462,8 @@ def recorded_config(field: SemanticField, source: str = "field") -> FieldConfig:
     """The :class:`FieldConfig` a field was built with, from its record (the ``scene`` and
     ``text_model`` records aside), so that it can be rebuilt or its settings read with their
     types. A setting recorded by no field built before it existed takes the value those builds
-    used (:data:`_BEFORE_RECORDED`).
+    used (:data:`_BEFORE_RECORDED`); a setting that no longer exists is dropped
+    (:data:`_RETIRED`).
 
     Raises:
         InputError: the record is not a valid FieldConfig (named by ``source`` and the key).
@@ -477,6 +478,12 @@ def recorded_config(field: SemanticField, source: str = "field") -> FieldConfig:
             node = node.get(stage) if isinstance(node, dict) else None
         if isinstance(node, dict) and name not in node:
             node[name] = value
+    for *stages, name in _RETIRED:
+        node = document
+        for stage in stages:
+            node = node.get(stage) if isinstance(node, dict) else None
+        if isinstance(node, dict):
+            node.pop(name, None)
     return FieldConfig.from_json(document, f"{source}: config")
 
 
@@ -486,8 +493,13 @@ _BEFORE_RECORDED = {
     ("superpoints", "partition", "split_alternatives"): 2,
     ("superpoints", "partition", "polish"): False,
     ("features", "median_steps"): 0,
+    ("superpoints", "partition", "block_size"): 0,
 }
 """Settings added after fields were first recorded, with the value every earlier build used."""
+
+_RETIRED = (("superpoints", "partition", "max_num_threads"),)
+"""Settings earlier fields recorded that no longer exist: the solver's thread count (the
+partition's result no longer depends on it)."""
 
 
 def read_field_config(path: str | os.PathLike[str]) -> FieldConfig:

@@ -65,6 +65,7 @@ def build(
     repeated_parts: bool = True,
     device: Literal["auto", "cpu", "cuda", "mps"] = "auto",
     lift_cache: Path | None = None,
+    threads: int | None = None,
     verbose: bool = False,
 ) -> None:
     """Build the semantic field of a scene from its views' masks and mask features.
@@ -113,9 +114,11 @@ def build(
         lift_cache: a folder to keep the lift in and reuse it from: a build of the same scene,
             guidance and lift settings (e.g. trying merge or partition settings with --set)
             reads it instead of lifting again (docs/build.md).
+        threads: CPU threads (default: every core, or NUMBA_NUM_THREADS); the field is the
+            same for any number.
         verbose: log every stage with its time.
     """
-    from thgs.device import resolve_device
+    from thgs.device import resolve_device, set_cpu_threads
     from thgs.field import save_field
     from thgs.field_scene import record_scene, record_text_model
     from thgs.guidance import (
@@ -131,6 +134,8 @@ def build(
 
     setup_logging(verbose)
     check_output_file(out)
+    if threads is not None:
+        set_cpu_threads(threads, "--threads")
     if config is not None and preset is not None:
         raise ThgsError("pass either --preset or --config, not both")
     settings = read_field_config(config) if config is not None else PRESETS[preset or "lerf"]()

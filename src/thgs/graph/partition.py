@@ -7,12 +7,26 @@ The partition solves, over one 9-D value ``x_v`` per Gaussian,
 with ``y_v = [√W · (μ_v − mean μ), rgb_v, n_v]`` (centre, DC colour, surface normal) and edge
 weights ``w_uv = 1 / (1 + d'_uv / mean d')`` from the (reweighted) squared KNN distances, using
 pycut-pursuit's ``cp_d0_dist``. The connected pieces of constant ``x`` are the superpoints.
+
+The result does not depend on the number of threads or on the machine: the graph is cut into
+spatial blocks of at most ``block_size`` Gaussians (recursive halving of each connected piece
+at the median of its longest axis: the data decide the blocks, not the threads), every
+connected piece of a block is solved by the solver on one thread (its parallel split cuts
+differently with another thread count), in parallel worker processes where the platform can
+fork them, and superpoints that meet across a block seam are merged while that lowers the
+same energy (:func:`_joined`). Single-Gaussian moves then polish the whole partition.
 """
 
 from __future__ import annotations
 
+import heapq
 import logging
+import pickle
+import subprocess
+import sys
+import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Literal
 
@@ -25,9 +39,12 @@ from thgs.errors import InputError, ThgsError
 from thgs.graph.knn import KnnGraph, nearest_neighbors
 from thgs.scene.gaussians import Gaussians
 
-__all__ = ["PartitionConfig", "partition"]
+__all__ = ["MIN_BLOCK_SIZE", "PartitionConfig", "partition"]
 
 log = logging.getLogger(__name__)
+
+MIN_BLOCK_SIZE = 1000
+"""The smallest block the partition accepts: smaller blocks would cut most superpoints."""
 
 
 @dataclass(frozen=True)
@@ -51,8 +68,11 @@ class PartitionConfig:
             and grow linearly to it (0.7; 1 = no damping).
         flip_normals_up: flip each normal to world z ≥ 0 before use, as the reference does on
             LERF. Off by default: whether z is "up" depends on the scene's frame.
-        max_num_threads: OpenMP threads of the solver; 0 = all. Results are deterministic for a
-            fixed thread count (the parallel split may cut differently with another count).
+        block_size: the most Gaussians of one block (50 000): connected pieces of the graph
+            larger than this are halved at the median of their longest axis until every block
+            fits, each block is solved on its own (in parallel) and superpoints are merged
+            across the seams (module docstring). 0 solves every connected piece whole. The
+            result depends on this, never on the number of threads or processes.
         weight_scale: the d̄ of the edge weights ``w = 1 / (1 + d' / d̄)``: ``"graph"`` (ours,
             default) the mean of the graph's own squared distances (before any votes), so a vote
             changes only the weight of the edge it lands on; ``"reweighted"`` (the reference) the
@@ -81,7 +101,7 @@ class PartitionConfig:
     cp_it_max: int = 15
     split_damp_ratio: float = 0.7
     flip_normals_up: bool = False
-    max_num_threads: int = 0
+    block_size: int = 50_000
     weight_scale: Literal["graph", "reweighted"] = "graph"
     split_alternatives: int = 6
     polish: bool = True
@@ -91,8 +111,14 @@ class PartitionConfig:
             raise InputError("PartitionConfig", "regularization and spatial_weight must be ≥ 0")
         if not (self.min_comp_weight >= 0 and self.cp_dif_tol >= 0):
             raise InputError("PartitionConfig", "min_comp_weight and cp_dif_tol must be ≥ 0")
-        if self.cp_it_max < 1 or self.max_num_threads < 0:
-            raise InputError("PartitionConfig", "need cp_it_max ≥ 1 and max_num_threads ≥ 0")
+        if self.cp_it_max < 1:
+            raise InputError("PartitionConfig", f"cp_it_max must be ≥ 1, got {self.cp_it_max}")
+        if self.block_size != 0 and not MIN_BLOCK_SIZE <= self.block_size:
+            raise InputError(
+                "PartitionConfig.block_size",
+                f"must be 0 (no blocks) or at least {MIN_BLOCK_SIZE} Gaussians, "
+                f"got {self.block_size}",
+            )
         if self.split_alternatives < 2:
             raise InputError(
                 "PartitionConfig",
@@ -211,17 +237,8 @@ def _features(gaussians: Gaussians, config: PartitionConfig) -> np.ndarray:
     return np.concatenate([position, colors, normals], axis=1).astype(np.float32)
 
 
-def _cut_pursuit(
-    features: np.ndarray,
-    sources: np.ndarray,
-    targets: np.ndarray,
-    weights: np.ndarray,
-    config: PartitionConfig,
-) -> np.ndarray:
-    """[m] component ids from ``cp_d0_dist`` on one connected graph of m vertices.
-
-    ``features`` is [m, 9]; edges ``sources[e] < targets[e]`` are local indices sorted by source.
-    """
+def _solver() -> Callable:
+    """pycut-pursuit's ``cp_d0_dist``, or a :class:`ThgsError` saying how to install it."""
     try:
         from pycut_pursuit.cp_d0_dist import cp_d0_dist
     except ImportError as error:
@@ -230,24 +247,41 @@ def _cut_pursuit(
             f" ({error}); its wheels need NumPy 1 up to Python 3.12 and NumPy 2 from 3.13, and "
             "`pip install thgs` installs that pair (README, Installing)"
         ) from error
+    return cp_d0_dist
+
+
+def _solver_arguments(
+    features: np.ndarray,
+    sources: np.ndarray,
+    targets: np.ndarray,
+    weights: np.ndarray,
+    config: PartitionConfig,
+) -> tuple[tuple, dict]:
+    """``(args, kwargs)`` of ``cp_d0_dist`` on one connected graph of m vertices, on one thread
+    (its parallel split cuts differently with another thread count).
+
+    ``features`` is [m, 9]; edges ``sources[e] < targets[e]`` are local indices sorted by source.
+    """
     m = features.shape[0]
     first_edge = np.zeros(m + 1, dtype=np.int32)
     np.cumsum(np.bincount(sources, minlength=m), out=first_edge[1:])
-    components, _ = cp_d0_dist(
+    args = (
         features.shape[1],
         features.T,  # the transpose of a C-contiguous [m, 9] array is F-contiguous, as required
         first_edge,
         targets.astype(np.int32),
-        edge_weights=(config.regularization * weights).astype(np.float32),
-        min_comp_weight=config.min_comp_weight,
-        cp_dif_tol=config.cp_dif_tol,
-        cp_it_max=config.cp_it_max,
-        split_damp_ratio=config.split_damp_ratio,
-        K=config.split_alternatives,
-        verbose=False,
-        max_num_threads=config.max_num_threads,
     )
-    return components.astype(np.int64)
+    kwargs = {
+        "edge_weights": (config.regularization * weights).astype(np.float32),
+        "min_comp_weight": config.min_comp_weight,
+        "cp_dif_tol": config.cp_dif_tol,
+        "cp_it_max": config.cp_it_max,
+        "split_damp_ratio": config.split_damp_ratio,
+        "K": config.split_alternatives,
+        "verbose": False,
+        "max_num_threads": 1,
+    }
+    return args, kwargs
 
 
 def _polished(
@@ -452,20 +486,196 @@ def _relabel(components: np.ndarray) -> np.ndarray:
     return rank[inverse]
 
 
+def _blocks(means: np.ndarray, piece: np.ndarray, sizes: np.ndarray, block_size: int) -> np.ndarray:
+    """[N] block id of each vertex: its connected piece's id, or for a piece of more than
+    ``block_size`` vertices, one of the halves it is cut into, again and again, at the median
+    of the members' longest axis (centres ``means`` [N, 3]; stable sort, so ties go by index)
+    until every half fits. ``block_size`` 0: the pieces themselves."""
+    block = piece.astype(np.int64)
+    if block_size == 0:
+        return block
+    fresh = len(sizes)
+    for p in np.flatnonzero(sizes > block_size):
+        stack = [np.flatnonzero(piece == p)]
+        while stack:
+            members = stack.pop()
+            if len(members) <= block_size:
+                block[members] = fresh
+                fresh += 1
+                continue
+            points = means[members]
+            axis = int(np.argmax(points.max(axis=0) - points.min(axis=0)))
+            order = members[np.argsort(points[:, axis], kind="stable")]
+            half = len(order) // 2
+            stack += [order[half:], order[:half]]
+    return block
+
+
+_WORKER = """
+import pickle, sys
+from pycut_pursuit.cp_d0_dist import cp_d0_dist
+calls = pickle.load(sys.stdin.buffer)
+pickle.dump([cp_d0_dist(*args, **kwargs)[0] for args, kwargs in calls], sys.stdout.buffer, 5)
+"""
+"""A solver process: reads a pickled list of ``cp_d0_dist`` calls, writes their components.
+It imports the solver alone (neither thgs nor the caller's main module)."""
+
+
+def _solved(tasks: list[tuple], config: PartitionConfig, workers: int) -> list[np.ndarray]:
+    """[m] component ids of every ``(features, sources, targets, weights)`` task
+    (:func:`_solver_arguments`), in order.
+
+    With ``workers`` > 1 and several tasks, ``workers`` fresh Python processes (:data:`_WORKER`)
+    share them, the largest first to the least loaded; else they are solved here one by one.
+    Every solve is single-threaded, so where it runs does not change its result. Fresh
+    processes, not a fork of this one (a fork of a process whose OpenMP runtimes, the
+    KD-tree's or torch's, have started threads hangs in the solver) nor multiprocessing's
+    spawn (which runs the caller's main module again in every worker).
+
+    Raises:
+        ThgsError: a solver process failed (its error output is in the message).
+    """
+    solver = _solver()
+    calls = [_solver_arguments(*task, config) for task in tasks]
+    if workers < 2 or len(tasks) < 2:
+        return [solver(*args, **kwargs)[0].astype(np.int64) for args, kwargs in calls]
+    shares: list[list[int]] = [[] for _ in range(min(workers, len(tasks)))]
+    loads = [0] * len(shares)
+    for i in sorted(range(len(tasks)), key=lambda i: (-len(tasks[i][0]), i)):
+        lightest = loads.index(min(loads))
+        shares[lightest].append(i)
+        loads[lightest] += len(tasks[i][0])
+    processes = []
+    try:
+        for share in shares:
+            errors = tempfile.TemporaryFile()
+            process = subprocess.Popen(
+                [sys.executable, "-c", _WORKER],
+                stdin=subprocess.PIPE,
+                stdout=subprocess.PIPE,
+                stderr=errors,
+            )
+            processes.append((process, errors))
+            try:
+                with process.stdin:  # type: ignore[union-attr]
+                    pickle.dump([calls[i] for i in share], process.stdin, 5)
+            except BrokenPipeError:
+                pass  # it died before reading: its exit code and error output say why
+        found: list[np.ndarray] = [np.zeros(0)] * len(tasks)
+        for share, (process, errors) in zip(shares, processes):
+            output = process.stdout.read()  # type: ignore[union-attr]
+            if process.wait() != 0:
+                errors.seek(0)
+                message = errors.read().decode(errors="replace").strip()[-2000:]
+                raise ThgsError(
+                    f"a cut-pursuit solver process ({sys.executable}) failed with exit code "
+                    f"{process.returncode}: {message}"
+                )
+            for i, components in zip(share, pickle.loads(output)):
+                found[i] = components.astype(np.int64)
+    finally:
+        for process, errors in processes:
+            if process.poll() is None:
+                process.kill()
+                process.wait()
+            process.stdout.close()  # type: ignore[union-attr]
+            errors.close()
+    return found
+
+
+def _joined(
+    labels: np.ndarray,
+    features: np.ndarray,
+    sources: np.ndarray,
+    targets: np.ndarray,
+    cost: np.ndarray,
+    seam: np.ndarray,
+) -> np.ndarray:
+    """[N] component ids after merging components that meet across a block seam.
+
+    Merging components a and b changes cut pursuit's energy by
+    ``n_a n_b / (n_a + n_b) · ‖c_a − c_b‖² − w_ab`` (c: mean feature, n: size, w_ab: the
+    summed ``cost`` of the edges between them): the pair joined by at least one seam edge
+    (``seam`` [E] bool) with the most negative change is merged, its edges and means updated,
+    until no such pair lowers the energy (ties: the lower ids first; the merged component keeps
+    the lower id)."""
+    _, labels = np.unique(labels, return_inverse=True)
+    count = int(labels.max()) + 1
+    sizes = np.bincount(labels, minlength=count).astype(np.float64)
+    sums = np.stack(
+        [np.bincount(labels, weights=column, minlength=count) for column in features.T], axis=1
+    )
+    a, b = labels[sources], labels[targets]
+    apart = a != b
+    low, high = np.minimum(a, b)[apart], np.maximum(a, b)[apart]
+    keys, inverse = np.unique(low * count + high, return_inverse=True)
+    weight = np.bincount(inverse, weights=cost[apart])
+    crossing = np.bincount(inverse, weights=seam[apart].astype(np.float64)) > 0
+    edges: list[dict[int, list]] = [{} for _ in range(count)]
+    for x, y, w, c in zip((keys // count).tolist(), (keys % count).tolist(), weight, crossing):
+        edges[x][y] = [float(w), bool(c)]
+        edges[y][x] = [float(w), bool(c)]
+    version = [0] * count
+
+    def change(x: int, y: int, w: float) -> float:
+        step = sums[x] / sizes[x] - sums[y] / sizes[y]
+        return float(sizes[x] * sizes[y] / (sizes[x] + sizes[y]) * (step @ step)) - w
+
+    heap = []
+    for x, y, w, c in zip((keys // count).tolist(), (keys % count).tolist(), weight, crossing):
+        if c and (gain := change(x, y, float(w))) < 0:
+            heap.append((gain, x, y, 0, 0))
+    heapq.heapify(heap)
+    root = np.arange(count)
+    while heap:
+        _, x, y, seen_x, seen_y = heapq.heappop(heap)
+        if version[x] != seen_x or version[y] != seen_y:
+            continue  # one of them changed since: its pairs were pushed again
+        sizes[x] += sizes[y]
+        sums[x] += sums[y]
+        root[y] = x
+        del edges[x][y]
+        for z, (w, c) in edges[y].items():
+            if z == x:
+                continue
+            del edges[z][y]
+            if z in edges[x]:
+                edges[x][z][0] += w
+                edges[x][z][1] |= c
+                edges[z][x][0] += w
+                edges[z][x][1] |= c
+            else:
+                edges[x][z] = [w, c]
+                edges[z][x] = [w, c]
+        edges[y] = {}
+        version[x] += 1
+        version[y] += 1
+        for z, (w, c) in edges[x].items():
+            low_id, high_id = min(x, z), max(x, z)
+            if c and (gain := change(low_id, high_id, w)) < 0:
+                heapq.heappush(heap, (gain, low_id, high_id, version[low_id], version[high_id]))
+    while not (root[root] == root).all():
+        root = root[root]
+    return root[labels]
+
+
 def partition(
     gaussians: Gaussians,
     graph: KnnGraph,
     distances: np.ndarray,
     config: PartitionConfig = PartitionConfig(),
+    *,
+    workers: int | None = None,
 ) -> np.ndarray:
     """Level-0 superpoints of N Gaussians.
 
-    The solver is run once per connected component of the graph: ``cp_d0_dist`` only separates
-    vertices across edges it cuts, so pieces of a disconnected graph would otherwise share one
-    value. A component smaller than ``max(2, 2 · min_comp_weight)`` Gaussians cannot hold two
-    superpoints and is one superpoint without a solver call. With ``config.polish`` single
-    Gaussians then move to a neighbouring superpoint while that lowers the same energy
-    (:func:`_polished`).
+    The graph is cut into blocks (module docstring, ``config.block_size``) and the solver run
+    once per connected piece of each block: ``cp_d0_dist`` only separates vertices across
+    edges it cuts, so pieces of a disconnected graph would otherwise share one value. A piece
+    smaller than ``max(2, 2 · min_comp_weight)`` Gaussians cannot hold two superpoints and is
+    one superpoint without a solver call. Superpoints meeting across a block seam are then
+    merged while that lowers the energy (:func:`_joined`), and with ``config.polish`` single
+    Gaussians move to a neighbouring superpoint while that lowers it (:func:`_polished`).
 
     Args:
         gaussians: the N Gaussians; centres (world frame, scene units), DC colours and surface
@@ -475,13 +685,21 @@ def partition(
             ``graph.neighbors``: ``graph.distances`` or the output of :func:`thgs.graph.reweight`
             (finite and ≥ 0 at present edges).
         config: cut-pursuit parameters.
+        workers: processes solving pieces at once (None: numba's thread count, the CPU
+            threads thgs uses, ``NUMBA_NUM_THREADS``). The result is the same for any number.
 
     Returns:
         [N] int32 superpoint ids 0 … S−1, numbered in order of each superpoint's smallest
         Gaussian index. Every superpoint is connected in the graph (plus the joins of isolated
-        Gaussians); the same inputs and thread count give the same ids.
+        Gaussians); the same inputs give the same ids, whatever ``workers`` or the machine.
+
+    Raises:
+        InputError: inconsistent inputs, or ``workers`` < 1.
     """
     started = time.perf_counter()
+    workers = numba.get_num_threads() if workers is None else workers
+    if isinstance(workers, bool) or not isinstance(workers, (int, np.integer)) or workers < 1:
+        raise InputError("partition", f"workers must be a whole number ≥ 1, got {workers!r}")
     n = len(gaussians)
     graph.check(n, source="partition graph")
     if distances.shape != graph.neighbors.shape:
@@ -498,36 +716,61 @@ def partition(
     scale_from = graph.distances if config.weight_scale == "graph" else distances
     first_edge, targets, weights = _edge_weights(graph, distances, means, scale_from)
     sources = np.repeat(np.arange(n), np.diff(first_edge))
-    adjacency = coo_matrix((np.ones(sources.size, dtype=np.int8), (sources, targets)), (n, n))
-    count, piece = connected_components(adjacency, directed=False)
-    sizes = np.bincount(piece, minlength=count)
+    block = _blocks(means, *_pieces(n, sources, targets), config.block_size)
+    seam = block[sources] != block[targets]
+    piece, sizes = _pieces(n, sources[~seam], targets[~seam])
+    count = len(sizes)
     members = np.argsort(piece, kind="stable")  # Gaussians grouped by piece, ascending inside
     starts = np.concatenate([[0], np.cumsum(sizes)])
     local = np.empty(n, dtype=np.int64)
     local[members] = np.arange(n) - starts[piece[members]]
-    edge_order = np.argsort(piece[sources], kind="stable")  # by piece, then (u, v)
-    edge_starts = np.concatenate([[0], np.cumsum(np.bincount(piece[sources], minlength=count))])
-    sources, targets, weights = sources[edge_order], targets[edge_order], weights[edge_order]
+    inner_sources, inner_targets, inner_weights = sources[~seam], targets[~seam], weights[~seam]
+    inner_piece = piece[inner_sources]
+    edge_order = np.argsort(inner_piece, kind="stable")  # by piece, then (u, v)
+    edge_starts = np.concatenate([[0], np.cumsum(np.bincount(inner_piece, minlength=count))])
+    inner_sources, inner_targets = inner_sources[edge_order], inner_targets[edge_order]
+    inner_weights = inner_weights[edge_order]
     features = _features(gaussians, config)
     components = piece.astype(np.int64) * n  # one id per piece; pieces solved below refine it
     solved = np.flatnonzero(sizes >= max(2.0, 2.0 * config.min_comp_weight))
+    tasks = []
     for p in solved:
         vertices = members[starts[p] : starts[p + 1]]
         edges = slice(edge_starts[p], edge_starts[p + 1])
-        components[vertices] += _cut_pursuit(
-            features[vertices], local[sources[edges]], local[targets[edges]], weights[edges], config
+        tasks.append(
+            (
+                features[vertices],
+                local[inner_sources[edges]],
+                local[inner_targets[edges]],
+                inner_weights[edges],
+            )
         )
+    for p, found in zip(solved, _solved(tasks, config, workers)):
+        components[members[starts[p] : starts[p + 1]]] += found
+    cost = config.regularization * weights.astype(np.float64)
+    if seam.any():
+        components = _joined(components, features.astype(np.float64), sources, targets, cost, seam)
     if config.polish:
         components = _polished(components, features, sources, targets, weights, config)
     labels = _relabel(components)
     log.info(
-        "partition: %d Gaussians, %d edges, %d connected pieces (%d solved) → %d superpoints "
-        "in %.2f s",
+        "partition: %d Gaussians, %d edges, %d blocks, %d pieces (%d solved, %d workers) → %d "
+        "superpoints in %.2f s",
         n,
         sources.size,
+        len(np.unique(block)),
         count,
         solved.size,
+        workers,
         int(labels.max()) + 1,
         time.perf_counter() - started,
     )
     return labels
+
+
+def _pieces(n: int, sources: np.ndarray, targets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(piece [N], sizes [P])``: the connected pieces of the undirected edges
+    ``sources[e] – targets[e]`` over n vertices."""
+    adjacency = coo_matrix((np.ones(sources.size, dtype=np.int8), (sources, targets)), (n, n))
+    _, piece = connected_components(adjacency, directed=False)
+    return piece, np.bincount(piece)
