@@ -12,8 +12,8 @@ The result does not depend on the number of threads or on the machine: the graph
 spatial blocks of at most ``block_size`` Gaussians (recursive halving of each connected piece
 at the median of its longest axis: the data decide the blocks, not the threads), every
 connected piece of a block is solved by the solver on one thread (its parallel split cuts
-differently with another thread count), in parallel worker processes where the platform can
-fork them, and superpoints that meet across a block seam are merged while that lowers the
+differently with another thread count), in parallel worker processes (:func:`_solved`), and
+superpoints that meet across a block seam are merged while that lowers the
 same energy (:func:`_joined`). Single-Gaussian moves then polish the whole partition.
 """
 
@@ -521,12 +521,18 @@ pickle.dump([cp_d0_dist(*args, **kwargs)[0] for args, kwargs in calls], sys.stdo
 It imports the solver alone (neither thgs nor the caller's main module)."""
 
 
+_SHARED_FROM = 2000
+"""Vertices to solve besides the largest piece below which worker processes (about 0.25 s to
+start each) are not started: the pieces are solved here."""
+
+
 def _solved(tasks: list[tuple], config: PartitionConfig, workers: int) -> list[np.ndarray]:
     """[m] component ids of every ``(features, sources, targets, weights)`` task
     (:func:`_solver_arguments`), in order.
 
-    With ``workers`` > 1 and several tasks, ``workers`` fresh Python processes (:data:`_WORKER`)
-    share them, the largest first to the least loaded; else they are solved here one by one.
+    With ``workers`` > 1 and at least :data:`_SHARED_FROM` vertices besides the largest task,
+    ``workers`` fresh Python processes (:data:`_WORKER`) share the tasks, the largest first to
+    the least loaded; else they are solved here one by one.
     Every solve is single-threaded, so where it runs does not change its result. Fresh
     processes, not a fork of this one (a fork of a process whose OpenMP runtimes, the
     KD-tree's or torch's, have started threads hangs in the solver) nor multiprocessing's
@@ -537,7 +543,8 @@ def _solved(tasks: list[tuple], config: PartitionConfig, workers: int) -> list[n
     """
     solver = _solver()
     calls = [_solver_arguments(*task, config) for task in tasks]
-    if workers < 2 or len(tasks) < 2:
+    sizes = sorted(len(task[0]) for task in tasks)
+    if workers < 2 or sum(sizes[:-1]) < _SHARED_FROM or not sys.executable:
         return [solver(*args, **kwargs)[0].astype(np.int64) for args, kwargs in calls]
     shares: list[list[int]] = [[] for _ in range(min(workers, len(tasks)))]
     loads = [0] * len(shares)
