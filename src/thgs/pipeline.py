@@ -471,20 +471,24 @@ def recorded_config(field: SemanticField, source: str = "field") -> FieldConfig:
     document = copy.deepcopy(
         {key: value for key, value in field.config.items() if key not in ("scene", "text_model")}
     )
-    for path, value in _BEFORE_RECORDED.items():
-        *stages, name = path
-        node = document
-        for stage in stages:
-            node = node.get(stage) if isinstance(node, dict) else None
-        if isinstance(node, dict) and name not in node:
+    for (*stages, name), value in _BEFORE_RECORDED.items():
+        node = _stage(document, stages)
+        if node is not None and name not in node:
             node[name] = value
     for *stages, name in _RETIRED:
-        node = document
-        for stage in stages:
-            node = node.get(stage) if isinstance(node, dict) else None
-        if isinstance(node, dict):
+        node = _stage(document, stages)
+        if node is not None:
             node.pop(name, None)
     return FieldConfig.from_json(document, f"{source}: config")
+
+
+def _stage(document: dict, stages: Sequence[str]) -> dict | None:
+    """The settings of the stage at the path ``stages`` in a config document, or None when a
+    record has no such stage (its error is the config reader's to report)."""
+    node: Any = document
+    for stage in stages:
+        node = node.get(stage) if isinstance(node, dict) else None
+    return node if isinstance(node, dict) else None
 
 
 _BEFORE_RECORDED = {

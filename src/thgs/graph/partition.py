@@ -618,21 +618,20 @@ def _joined(
     keys, inverse = np.unique(low * count + high, return_inverse=True)
     weight = np.bincount(inverse, weights=cost[apart])
     crossing = np.bincount(inverse, weights=seam[apart].astype(np.float64)) > 0
-    edges: list[dict[int, list]] = [{} for _ in range(count)]
-    for x, y, w, c in zip((keys // count).tolist(), (keys % count).tolist(), weight, crossing):
-        edges[x][y] = [float(w), bool(c)]
-        edges[y][x] = [float(w), bool(c)]
-    version = [0] * count
 
     def change(x: int, y: int, w: float) -> float:
         step = sums[x] / sizes[x] - sums[y] / sizes[y]
         return float(sizes[x] * sizes[y] / (sizes[x] + sizes[y]) * (step @ step)) - w
 
+    edges: list[dict[int, list]] = [{} for _ in range(count)]
     heap = []
     for x, y, w, c in zip((keys // count).tolist(), (keys % count).tolist(), weight, crossing):
+        edges[x][y] = [float(w), bool(c)]
+        edges[y][x] = [float(w), bool(c)]
         if c and (gain := change(x, y, float(w))) < 0:
             heap.append((gain, x, y, 0, 0))
     heapq.heapify(heap)
+    version = [0] * count
     root = np.arange(count)
     while heap:
         _, x, y, seen_x, seen_y = heapq.heappop(heap)
@@ -723,9 +722,11 @@ def partition(
     scale_from = graph.distances if config.weight_scale == "graph" else distances
     first_edge, targets, weights = _edge_weights(graph, distances, means, scale_from)
     sources = np.repeat(np.arange(n), np.diff(first_edge))
-    block = _blocks(means, *_pieces(n, sources, targets), config.block_size)
+    piece, sizes = _pieces(n, sources, targets)
+    block = _blocks(means, piece, sizes, config.block_size)
     seam = block[sources] != block[targets]
-    piece, sizes = _pieces(n, sources[~seam], targets[~seam])
+    if seam.any():  # the pieces of the blocks, without the edges across their seams
+        piece, sizes = _pieces(n, sources[~seam], targets[~seam])
     count = len(sizes)
     members = np.argsort(piece, kind="stable")  # Gaussians grouped by piece, ascending inside
     starts = np.concatenate([[0], np.cumsum(sizes)])
