@@ -13,7 +13,7 @@ import torch
 from thgs import Cameras, Gaussians, InputError
 from thgs.render import RasterConfig, project, render, resolve_backend, splat_back, splat_labels
 from thgs.render._reference import ReferenceBackend, dense_weights
-from thgs.render.projection import project_torch
+from thgs.render.projection import project_centers, project_torch
 from thgs.scene.gaussians import quaternions_to_matrices
 
 CPU_BACKENDS = ["numba", "torch"]
@@ -303,6 +303,33 @@ def test_adjoint_identity(kind):
     mask = F[..., 0] > 0
     masked = splat_back(gaussians, cam, F, mask=mask).feature_sums
     torch.testing.assert_close(masked, splat_back(gaussians, cam, F * mask[..., None]).feature_sums)
+
+
+@pytest.mark.parametrize("kind", ["2dgs", "3dgs"])
+def test_centres_alone_are_the_projections(kind):
+    """project_centers gives project_torch's depths and centres, also for points behind the
+    camera or past far; a hand-computed point in a moved camera."""
+    gaussians, cam = tiny_scene(kind, n=60, seed=4), camera(cx=20.3, cy=15.5)
+    config = RasterConfig(near=0.2, far=5.0)
+    depths, centers = project_centers(gaussians, cam, config)
+    full = project_torch(gaussians, cam, config)
+    assert bool((depths <= config.near).any()) and bool((depths >= config.far).any())
+    assert torch.equal(depths, full.depths) and torch.equal(centers, full.centers)
+    moved = Cameras(
+        torch.tensor([[[0.0, -1, 0, 0.5], [1, 0, 0, 0], [0, 0, 1, 2], [0, 0, 0, 1]]]),
+        cam.Ks,
+        cam.widths,
+        cam.heights,
+        cam.stems,
+    )
+    point = Gaussians(
+        torch.tensor([[1.0, 2.0, 2.0]]), torch.tensor([[1.0, 0, 0, 0]]), torch.zeros(1, 3),
+        torch.zeros(1), torch.zeros(1, 1, 3),
+    )  # fmt: skip
+    # camera frame: (−2 + 0.5, 1, 2 + 2) = (−1.5, 1, 4); pixels: 40·(−1.5)/4 + 20.3, 40·1/4 + 15.5
+    depths, centers = project_centers(point, moved, config)
+    torch.testing.assert_close(depths, torch.tensor([4.0], dtype=torch.float64))
+    torch.testing.assert_close(centers, torch.tensor([[5.3, 25.5]], dtype=torch.float64))
 
 
 def test_projection_matches_gsplat_3dgs():

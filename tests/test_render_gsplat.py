@@ -1,10 +1,11 @@
 """The gsplat backend (thgs.render._gsplat).
 
 On CUDA (skipped without a GPU or without gsplat's kernels): against the torch backend on random
-2DGS and 3DGS scenes with gsplat's α cap, the adjoint identity, and listing the pairs a few tiles
-at a time. Everywhere: backend resolution, the reasons gsplat refuses a device, a dtype or a
-missing install, the log of the settings gsplat cannot honour, and the pair weights recomputed in
-torch against the brute-force reference.
+2DGS and 3DGS scenes with gsplat's α cap, the adjoint identity, listing the pairs a few tiles
+at a time, and no tile listing more pairs than its bound. Everywhere: backend resolution, the
+reasons gsplat refuses a device, a dtype or a missing install, the log of the settings gsplat
+cannot honour, the pair weights recomputed in torch against the brute-force reference, and the
+sizing of the pair listing (per-tile bounds against a pixel count, blocks, the memory budget).
 
 Tolerances against the torch backend: gsplat bins 2DGS surfels by 3.33× their projected 1σ
 ellipse, which drops some contributions with α ≥ 1/255 (thgs.render._gsplat says which; its 3DGS
@@ -18,6 +19,8 @@ and 9 % in a pixel count; the bounds below leave room for the float32 effects.
 from __future__ import annotations
 
 import logging
+import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -192,7 +195,7 @@ def test_pairs_listed_a_few_tiles_at_a_time(cuda, kind, monkeypatch):
     whole = render(gaussians, cam, features, config=GSPLAT)
     whole_back = splat_back(gaussians, cam, features.new_ones(HEIGHT, WIDTH, 1), config=GSPLAT)
     whole_labels = splat_labels(gaussians, cam, maps, config=GSPLAT)
-    monkeypatch.setattr(_gsplat, "_ISECTS_PER_CALL", 64)
+    monkeypatch.setattr(_gsplat, "_pair_budget", lambda free_bytes: 3000)
     blocks = render(gaussians, cam, features, config=GSPLAT)
     blocks_back = splat_back(gaussians, cam, features.new_ones(HEIGHT, WIDTH, 1), config=GSPLAT)
     blocks_labels = splat_labels(gaussians, cam, maps, config=GSPLAT)
@@ -205,6 +208,130 @@ def test_pairs_listed_a_few_tiles_at_a_time(cuda, kind, monkeypatch):
     for name in ("gaussians", "levels", "labels"):
         assert torch.equal(getattr(blocks_labels, name), getattr(whole_labels, name))
     torch.testing.assert_close(blocks_labels.weights, whole_labels.weights, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("kind", ["2dgs", "3dgs"])
+def test_tile_bounds_hold_every_listed_pair(cuda, kind):
+    """No tile lists more pairs than its bound, and the pair memory stays within the budget's
+    order (the bound is what sizes the blocks)."""
+    gaussians, cam = scene(kind, 5, cuda), view_camera()
+    view = _gsplat._view(gaussians, cam, GSPLAT)
+    bounds = _gsplat._tile_pair_bounds(view)
+    listed = torch.zeros_like(bounds)
+    tiles_x = view.offsets.shape[2]
+    for _, pixel_ids, _ in _gsplat._pairs(view):
+        x = torch.div(pixel_ids % WIDTH, 16, rounding_mode="floor")
+        y = torch.div(torch.div(pixel_ids, WIDTH, rounding_mode="floor"), 16, rounding_mode="floor")
+        listed += torch.bincount(y * tiles_x + x, minlength=len(listed))
+    assert int(listed.sum()) > 1000
+    assert bool((listed <= bounds).all())
+
+
+def binned_view(kind: str, width: int, height: int, seed: int) -> _gsplat._View:
+    """A CPU stand-in for gsplat's binning: random centres and box half extents, each Gaussian
+    listed in every tile its box touches (gsplat's tile range), tiles in row-major order."""
+    generator = torch.Generator().manual_seed(seed)
+    n = 60
+    means2d = torch.rand(n, 2, generator=generator) * torch.tensor([width + 20.0, height + 20.0])
+    means2d -= 10
+    radii = torch.randint(0, 30, (n, 2), generator=generator, dtype=torch.int32)
+    tiles_x, tiles_y = -(-width // 16), -(-height // 16)
+    listed: list[list[int]] = [[] for _ in range(tiles_x * tiles_y)]
+    for g in range(n):
+        if radii[g].min() <= 0:
+            continue
+        (cx, cy), (rx, ry) = means2d[g].tolist(), radii[g].tolist()
+        for ty in range(
+            max(0, math.floor((cy - ry) / 16)), min(tiles_y, math.ceil((cy + ry) / 16))
+        ):
+            for tx in range(
+                max(0, math.floor((cx - rx) / 16)), min(tiles_x, math.ceil((cx + rx) / 16))
+            ):
+                listed[ty * tiles_x + tx].append(g)
+    counts = torch.tensor([len(ids) for ids in listed])
+    return _gsplat._View(
+        kind=kind,
+        width=width,
+        height=height,
+        means2d=means2d[None],
+        params=torch.zeros(1, n, 3),
+        normals=None,
+        opacities=torch.ones(1, n),
+        depths=torch.ones(n),
+        radii=radii[None],
+        offsets=(torch.cumsum(counts, 0) - counts).int().reshape(1, tiles_y, tiles_x),
+        flatten_ids=torch.tensor([g for ids in listed for g in ids], dtype=torch.int32),
+    )
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_tile_pair_bounds_count_the_pixels_in_each_box(seed):
+    """3DGS: per tile, at least the pixels whose centres lie in each listed Gaussian's box and at
+    most those of the box widened by one pixel a side; 2DGS: every tile pixel per intersection.
+    Edge tiles count only their pixels inside the image (70×50: tiles of 6 and 2 pixels)."""
+    width, height = 70, 50
+    view = binned_view("3dgs", width, height, seed)
+    starts = [*view.offsets.flatten().tolist(), len(view.flatten_ids)]
+    tiles_x = view.offsets.shape[2]
+    bounds = _gsplat._tile_pair_bounds(view).tolist()
+    assert sum(bounds) > 0
+    for tile, bound in enumerate(bounds):
+        x0, y0 = (tile % tiles_x) * 16, (tile // tiles_x) * 16
+        columns = np.arange(x0, min(x0 + 16, width)) + 0.5
+        rows = np.arange(y0, min(y0 + 16, height)) + 0.5
+        inside = widened = 0
+        for g in view.flatten_ids[starts[tile] : starts[tile + 1]].tolist():
+            (cx, cy), (rx, ry) = view.means2d[0, g].tolist(), view.radii[0, g].tolist()
+            inside += np.sum(np.abs(columns - cx) <= rx) * np.sum(np.abs(rows - cy) <= ry)
+            widened += np.sum(np.abs(columns - cx) <= rx + 1) * np.sum(np.abs(rows - cy) <= ry + 1)
+        assert inside <= bound <= widened, tile
+    surfels = replace(view, kind="2dgs")
+    tile_pixels = [
+        (min(x0 + 16, width) - x0) * (min(y0 + 16, height) - y0)
+        for y0 in range(0, height, 16)
+        for x0 in range(0, width, 16)
+    ]
+    expected = [(starts[t + 1] - starts[t]) * tile_pixels[t] for t in range(len(tile_pixels))]
+    assert _gsplat._tile_pair_bounds(surfels).tolist() == expected
+
+
+def test_tile_pair_bounds_cap_at_the_pairs_a_pixel_can_hold():
+    """A tile crowded with more Gaussians than a pixel can composite (α ≥ 1/255 each, stop at
+    T ≤ 1e-4: at most 2344, one more for rounding) is bounded per pixel, not per Gaussian."""
+    assert _gsplat._MAX_PAIRS_PER_PIXEL == 2345
+    assert (1 - 1 / 255) ** 2344 > 1e-4 > (1 - 1 / 255) ** 2345
+    n = 3000
+    view = _gsplat._View(
+        kind="2dgs",
+        width=16,
+        height=16,
+        means2d=torch.full((1, n, 2), 8.0),
+        params=torch.zeros(1, n, 3),
+        normals=None,
+        opacities=torch.ones(1, n),
+        depths=torch.ones(n),
+        radii=torch.full((1, n, 2), 20, dtype=torch.int32),
+        offsets=torch.zeros(1, 1, 1, dtype=torch.int32),
+        flatten_ids=torch.arange(n, dtype=torch.int32),
+    )
+    assert _gsplat._tile_pair_bounds(view).tolist() == [256 * 2345]
+    assert _gsplat._tile_pair_bounds(replace(view, kind="3dgs")).tolist() == [256 * 2345]
+
+
+def test_tile_blocks_fill_the_budget_in_order():
+    """Hand cases: consecutive tiles while their bounds fit; a tile over the budget alone; empty
+    tiles ride along."""
+    assert _gsplat._tile_blocks([5, 3, 0, 7, 2], 8) == [(0, 3), (3, 4), (4, 5)]
+    assert _gsplat._tile_blocks([10, 1, 1], 8) == [(0, 1), (1, 3)]
+    assert _gsplat._tile_blocks([0, 0, 0], 1) == [(0, 3)]
+    assert _gsplat._tile_blocks([4, 4, 4, 4], 100) == [(0, 4)]
+    assert _gsplat._tile_blocks([], 5) == []
+
+
+def test_pair_budget_takes_half_the_free_memory():
+    """8 GiB free: 4 GiB for pairs of 400 bytes; nothing free still lists one tile at a time."""
+    assert _gsplat._pair_budget(8 * 2**30) == 4 * 2**30 // 400
+    assert _gsplat._pair_budget(0) == 1
 
 
 @pytest.mark.parametrize("kind", ["2dgs", "3dgs"])
@@ -230,6 +357,7 @@ def test_pair_weights_match_brute_force(kind):
         normals=None,
         opacities=projection.opacities.float()[None],
         depths=projection.depths.float(),
+        radii=torch.zeros(1, n, 2, dtype=torch.int32),
         offsets=torch.zeros(1, 1, 1, dtype=torch.int32),
         flatten_ids=torch.zeros(0, dtype=torch.int32),
     )

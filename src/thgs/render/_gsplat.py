@@ -19,8 +19,16 @@ every output comes from that one binning:
   from T = 1, so the kernel applies the same α test and stop rule in the same float32 arithmetic
   as the fused forward pass: the pairs are exactly those ``render`` composites, and the weights
   differ from the kernel's only by rounding (``exp`` against ``__expf``).
-- ``project`` and the depths and centres of ``splat_back`` are the shared projection,
-  :func:`thgs.render.projection.project_torch`, in float32 on the device.
+- ``project`` is the shared projection, :func:`thgs.render.projection.project_torch`;
+  ``splat_back``'s depths and centres are its first step alone
+  (:func:`~thgs.render.projection.project_centers`), in float32 on the device.
+
+**Memory of the pair listing.** A block of tiles is as large as half the device's free memory
+allows (:func:`_pair_budget`) at :data:`_BYTES_PER_PAIR` bytes per pair, counting for each tile
+an upper bound on its pairs (:func:`_tile_pair_bounds`): per intersection the tile's pixels inside
+the Gaussian's box (3DGS, whose box holds every α ≥ 1/255) or all of the tile's pixels (2DGS,
+whose box does not), and per pixel at most :data:`_MAX_PAIRS_PER_PIXEL` pairs. On a large GPU a
+1M-Gaussian view is listed in one or a few calls instead of one per 2^16 intersections.
 
 gsplat's kernels fix some constants that :class:`thgs.render.RasterConfig` makes parameters:
 
@@ -65,7 +73,7 @@ from torch import Tensor
 
 from thgs.render.config import RasterConfig
 from thgs.render.outputs import LabelWeights, RenderOutput, SplatBackOutput
-from thgs.render.projection import Projection, project_torch
+from thgs.render.projection import Projection, project_centers, project_torch
 from thgs.scene import Cameras, Gaussians
 
 __all__ = ["GsplatBackend"]
@@ -88,9 +96,19 @@ _CHANNEL_COUNTS = (1, 2, 3, 4, 8, 16, 32)
 """Channel counts up to :data:`_CHANNEL_CHUNK` that both rasterizers are compiled for; a chunk
 is zero-padded to the next one (gsplat pads the 2DGS colours with uninitialised memory)."""
 
-_ISECTS_PER_CALL = 1 << 16
-"""(tile, Gaussian) intersections listed per ``rasterize_to_indices_in_range`` call (at least
-one tile's): a call yields at most 256 pairs per intersection, so this bounds its memory."""
+_MAX_PAIRS_PER_PIXEL = (
+    math.floor(math.log(_FIXED["transmittance_min"]) / math.log1p(-_FIXED["alpha_min"])) + 1
+)
+"""Pairs of one pixel at most (2345): every composited Gaussian has α ≥ 1/255, and a pixel stops
+before the Gaussian that would bring its transmittance to ≤ 1e-4 (one more for rounding)."""
+
+_BYTES_PER_PAIR = 400
+"""Device memory one listed pair takes at most with the temporaries: its ids and weight (the
+kernel's output and ``_pair_weights``, about 300 bytes for surfels) and ``label_weights``' keys of
+four levels."""
+
+_FREE_SHARE = 0.5
+"""Share of the device's free memory that one block of the pair listing may take."""
 
 _NO_KERNELS = (
     "gsplat's CUDA kernels are not built and no CUDA toolkit (nvcc) was found to compile them: "
@@ -166,6 +184,8 @@ class _View:
             for 3DGS.
         opacities: [1, N] activated opacities.
         depths: [N] camera-space z of every centre (scene units).
+        radii: [1, N, 2] int32 half extents in pixels of the box each Gaussian was binned by
+            (0 for Gaussians not drawn).
         offsets: [1, tiles_y, tiles_x] int32 first intersection of each tile (row-major).
         flatten_ids: [I] int32 Gaussian of each intersection, by tile, then depth, then index.
     """
@@ -178,6 +198,7 @@ class _View:
     normals: Tensor | None
     opacities: Tensor
     depths: Tensor
+    radii: Tensor
     offsets: Tensor
     flatten_ids: Tensor
 
@@ -243,6 +264,7 @@ def _view(gaussians: Gaussians, camera: Cameras, config: RasterConfig) -> _View:
         normals=normals,
         opacities=opacities[None],
         depths=(means @ rotation.T + translation)[:, 2],
+        radii=radii,
         offsets=offsets.reshape(1, tiles_y, tiles_x),
         flatten_ids=flatten_ids,
     )
@@ -310,8 +332,69 @@ def _pair_weights(view: _View, gaussian_ids: Tensor, pixel_ids: Tensor) -> Tenso
     return alpha * torch.exp(before).float()
 
 
+def _tile_pair_bounds(view: _View) -> Tensor:
+    """An upper bound on the (Gaussian, pixel) pairs of each tile: [tiles] int64, row-major.
+
+    Each of a tile's intersections counts the tile's pixels inside the Gaussian's box widened by
+    a pixel (3DGS: gsplat's box holds every α ≥ 1/255) or all the tile's pixels (2DGS, whose box
+    can cut off part of α ≥ 1/255); a tile holds at most :data:`_MAX_PAIRS_PER_PIXEL` pairs per
+    pixel.
+    """
+    device = view.flatten_ids.device
+    tiles_y, tiles_x = view.offsets.shape[1:]
+    starts = view.offsets.flatten().long()
+    ends = torch.cat([starts[1:], torch.tensor([len(view.flatten_ids)], device=device)])
+    tile = torch.arange(tiles_y * tiles_x, device=device)
+    x0 = (tile % tiles_x) * _TILE_SIZE
+    y0 = torch.div(tile, tiles_x, rounding_mode="floor") * _TILE_SIZE
+    tile_columns = (view.width - x0).clamp(max=_TILE_SIZE)
+    tile_rows = (view.height - y0).clamp(max=_TILE_SIZE)
+    if view.kind == "2dgs":
+        sums = (ends - starts) * tile_columns * tile_rows
+    else:
+        tile_of = torch.repeat_interleave(tile, ends - starts, output_size=len(view.flatten_ids))
+        ids = view.flatten_ids.long()
+        centres = view.means2d[0, ids]
+        radii = view.radii[0, ids].to(centres.dtype)
+        # pixel (c, r) has its centre at (c + 0.5, r + 0.5)
+        low = torch.floor(centres - radii - 0.5).long()
+        high = torch.ceil(centres + radii - 0.5).long()
+        corner = torch.stack([x0[tile_of], y0[tile_of]], dim=1)
+        size = torch.stack([tile_columns[tile_of], tile_rows[tile_of]], dim=1)
+        inside = torch.minimum(high, corner + size - 1) - torch.maximum(low, corner) + 1
+        sums = torch.zeros(len(tile), dtype=torch.int64, device=device)
+        sums.index_add_(0, tile_of, inside.clamp(min=0).prod(dim=1))
+    return torch.minimum(sums, tile_columns * tile_rows * _MAX_PAIRS_PER_PIXEL)
+
+
+def _pair_budget(free_bytes: int) -> int:
+    """Pairs one block of tiles may list, given the device's free memory in bytes (≥ 1)."""
+    return max(1, int(free_bytes * _FREE_SHARE) // _BYTES_PER_PAIR)
+
+
+def _free_bytes(device: torch.device) -> int:
+    """The CUDA device's free memory in bytes, counting what torch's allocator holds unused."""
+    free, _ = torch.cuda.mem_get_info(device)
+    return free + torch.cuda.memory_reserved(device) - torch.cuda.memory_allocated(device)
+
+
+def _tile_blocks(bounds: list[int], budget: int) -> list[tuple[int, int]]:
+    """Consecutive tile ranges ``[first, last)`` covering every tile once, each as long as the
+    sum of its tiles' ``bounds`` stays within ``budget`` (a tile over it alone)."""
+    cumulative = [0]
+    for bound in bounds:
+        cumulative.append(cumulative[-1] + bound)
+    blocks, first = [], 0
+    while first < len(bounds):
+        last = max(first + 1, bisect.bisect_right(cumulative, cumulative[first] + budget) - 1)
+        blocks.append((first, last))
+        first = last
+    return blocks
+
+
 def _pairs(view: _View) -> Iterator[tuple[Tensor, Tensor, Tensor]]:
-    """The (Gaussian, pixel) pairs gsplat composites, a block of whole tiles at a time.
+    """The (Gaussian, pixel) pairs gsplat composites, a block of whole tiles at a time (blocks
+    sized by the device's free memory, :func:`_tile_blocks`).
 
     Yields:
         ``(gaussian_ids, pixel_ids, weights)``, each [M]: int64 Gaussian index, int64 row-major
@@ -327,13 +410,11 @@ def _pairs(view: _View) -> Iterator[tuple[Tensor, Tensor, Tensor]]:
     )
     # tile t holds intersections starts[t]:starts[t + 1] (one host copy of the tile offsets)
     starts = [*view.offsets.flatten().tolist(), len(view.flatten_ids)]
-    tiles = len(starts) - 1
-    ones = torch.ones(1, view.height, view.width, device=view.depths.device)
+    device = view.depths.device
+    budget = _pair_budget(_free_bytes(device))
+    ones = torch.ones(1, view.height, view.width, device=device)
     batch = _TILE_SIZE * _TILE_SIZE  # Gaussians per tile per kernel batch
-    first = 0
-    while first < tiles:
-        fitting = bisect.bisect_right(starts, starts[first] + _ISECTS_PER_CALL) - 1
-        last = max(first + 1, fitting)
+    for first, last in _tile_blocks(_tile_pair_bounds(view).tolist(), budget):
         begin, end = starts[first], starts[last]
         if end > begin:
             # tiles outside [first, last) get empty ranges: offsets clamped to [begin, end] and
@@ -352,7 +433,6 @@ def _pairs(view: _View) -> Iterator[tuple[Tensor, Tensor, Tensor]]:
                 view.flatten_ids[:end],
             )
             yield gaussian_ids, pixel_ids, _pair_weights(view, gaussian_ids, pixel_ids)
-        first = last
 
 
 def _add_weight_stats(
@@ -457,15 +537,15 @@ class GsplatBackend:
                 inside = keep[pixel_ids]
                 gaussian_ids, weights = gaussian_ids[inside], weights[inside]
             _add_weight_stats(gaussian_ids, weights, weight_sums, max_weights, pixel_counts)
-        projection = project_torch(gaussians, camera, config, dtype)
+        depths, centers = project_centers(gaussians, camera, config, dtype)
         out_dtype = pixel_map.dtype
         return SplatBackOutput(
             feature_sums=feature_sums.to(out_dtype),
             weight_sums=weight_sums.to(out_dtype),
             max_weights=max_weights.to(out_dtype),
             pixel_counts=pixel_counts,
-            depths=projection.depths.to(out_dtype),
-            centers=projection.centers.to(out_dtype),
+            depths=depths.to(out_dtype),
+            centers=centers.to(out_dtype),
         )
 
     def label_weights(

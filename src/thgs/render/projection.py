@@ -28,7 +28,7 @@ from thgs.render.config import RasterConfig
 from thgs.scene import Cameras, Gaussians
 from thgs.scene.gaussians import quaternions_to_matrices
 
-__all__ = ["Projection", "project_torch"]
+__all__ = ["Projection", "project_centers", "project_torch"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -81,6 +81,44 @@ def _union(
     return low, high
 
 
+def _camera_means(
+    gaussians: Gaussians, camera: Cameras, dtype: torch.dtype
+) -> tuple[Tensor, Tensor]:
+    """The centres in the camera frame [N, 3] (scene units) and the intrinsics [3, 3], in
+    ``dtype`` on the Gaussians' device."""
+    device = gaussians.device
+    viewmat = camera.viewmats[0].to(device=device, dtype=dtype)
+    K = camera.Ks[0].to(device=device, dtype=dtype)
+    rotation, translation = viewmat[:3, :3], viewmat[:3, 3]
+    return gaussians.means.to(dtype) @ rotation.T + translation, K
+
+
+def _pinhole(means: Tensor, K: Tensor, in_range: Tensor) -> tuple[Tensor, Tensor]:
+    """Projected centres [N, 2] in pixels of camera-frame points ``means`` [N, 3], and the
+    depth they were divided by [N] (1 where ``in_range`` [N] is False)."""
+    z = torch.where(in_range, means[:, 2], torch.ones_like(means[:, 2]))
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    return torch.stack([fx * means[:, 0] / z + cx, fy * means[:, 1] / z + cy], dim=-1), z
+
+
+def project_centers(
+    gaussians: Gaussians,
+    camera: Cameras,
+    config: RasterConfig = RasterConfig(),
+    dtype: torch.dtype = torch.float64,
+) -> tuple[Tensor, Tensor]:
+    """The depths and projected centres of :func:`project_torch`, without the covariances.
+
+    Returns:
+        ``(depths, centers)``: [N] camera-space z of the centres (scene units) and [N, 2] their
+        pixel coordinates, exactly :attr:`Projection.depths` and :attr:`Projection.centers`.
+    """
+    means, K = _camera_means(gaussians, camera, dtype)
+    depths = means[:, 2]
+    centers, _ = _pinhole(means, K, (depths > config.near) & (depths < config.far))
+    return depths, centers
+
+
 def project_torch(
     gaussians: Gaussians,
     camera: Cameras,
@@ -95,17 +133,14 @@ def project_torch(
         bounds.
     """
     device = gaussians.device
-    viewmat = camera.viewmats[0].to(device=device, dtype=dtype)
-    K = camera.Ks[0].to(device=device, dtype=dtype)
     width, height = int(camera.widths[0]), int(camera.heights[0])
-    rotation, translation = viewmat[:3, :3], viewmat[:3, 3]
-    means = gaussians.means.to(dtype) @ rotation.T + translation
+    means, K = _camera_means(gaussians, camera, dtype)
     depths = means[:, 2]
     opacities = torch.sigmoid(gaussians.opacities.to(dtype))
     in_range = (depths > config.near) & (depths < config.far)
-    z = torch.where(in_range, depths, torch.ones_like(depths))
+    centers, z = _pinhole(means, K, in_range)
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-    centers = torch.stack([fx * means[:, 0] / z + cx, fy * means[:, 1] / z + cy], dim=-1)
+    rotation = camera.viewmats[0, :3, :3].to(device=device, dtype=dtype)
     axes = rotation @ quaternions_to_matrices(gaussians.quats.to(dtype))  # local axes, camera frame
     scales = torch.exp(gaussians.scales.to(dtype))
     log_ratio = torch.log(opacities / config.alpha_min)
