@@ -362,8 +362,10 @@ def _tile_pair_bounds(view: _View) -> Tensor:
         corner = torch.stack([x0[tile_of], y0[tile_of]], dim=1)
         size = torch.stack([tile_columns[tile_of], tile_rows[tile_of]], dim=1)
         inside = torch.minimum(high, corner + size - 1) - torch.maximum(low, corner) + 1
-        sums = torch.zeros(len(tile), dtype=torch.int64, device=device)
-        sums.index_add_(0, tile_of, inside.clamp(min=0).prod(dim=1))
+        # the intersections come tile by tile: a tile's sum is a difference of running sums
+        running = torch.cumsum(inside.clamp(min=0).prod(dim=1), 0)
+        running = torch.cat([running.new_zeros(1), running])
+        sums = running[ends] - running[starts]
     return torch.minimum(sums, tile_columns * tile_rows * _MAX_PAIRS_PER_PIXEL)
 
 
