@@ -216,11 +216,13 @@ def environment(sizes: Sizes, tiny: bool) -> dict:
     }
 
 
-def _no_cuda(sizes: Sizes) -> str | None:
-    if sizes.device == "cuda" and not torch.cuda.is_available():
-        return "torch sees no CUDA device"
-    if sizes.device != "cuda":
+def _unrunnable(name: str, sizes: Sizes) -> str | None:
+    """Why step ``name`` cannot run here at these sizes, or None."""
+    if name == "kernels" and sizes.device != "cuda":
         return "the tiny dry run uses the CPU"
+    if name in ("kernels", "render", "build", "preprocess") and sizes.device == "cuda":
+        if not torch.cuda.is_available():
+            return "torch sees no CUDA device"
     return None
 
 
@@ -500,8 +502,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.steps is not None and name not in args.steps:
             continue
         left = deadline - time.monotonic()
-        if name in ("kernels",) and _no_cuda(sizes):
-            entry = {"status": "skipped", "why": _no_cuda(sizes)}
+        if _unrunnable(name, sizes):
+            entry = {"status": "skipped", "why": _unrunnable(name, sizes)}
         elif name in needs and left < needs[name]:
             entry = {"status": "skipped", "why": f"{left:.0f} s left, {needs[name]} s needed"}
         else:

@@ -102,3 +102,21 @@ def test_full_size_models_have_the_published_sizes():
     millions = [sum(p.numel() for p in model.parameters()) / 1e6 for model in (sam, sam2)]
     assert 640 < millions[0] < 642
     assert 212 < millions[1] < 224
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has CUDA")
+def test_full_size_without_cuda_says_so(tmp_path):
+    """The full sizes on a machine without CUDA: every GPU step is skipped, saying why."""
+    out = tmp_path / "report.json"
+    script = str(ROOT / "scripts" / "gpu_check.py")
+    steps = ["environment", "kernels", "render", "build", "preprocess"]
+    run = subprocess.run(
+        [sys.executable, script, "--out", str(out), "--steps", *steps],
+        capture_output=True,
+        text=True,
+    )
+    assert run.returncode == 0, run.stderr
+    report = json.loads(out.read_text())["steps"]
+    assert report["environment"]["mode"] == "full"
+    for name in steps[1:]:
+        assert report[name] == {"status": "skipped", "why": "torch sees no CUDA device"}
