@@ -39,7 +39,7 @@ from thgs.guidance import LEVELS, ViewGuidance
 from thgs.render import LabelWeights, RasterConfig, resolve_backend, splat_labels
 from thgs.scene import Cameras, Gaussians
 
-__all__ = ["LiftConfig", "ViewLift", "lift_view", "lift_views"]
+__all__ = ["LiftConfig", "ViewLift", "iter_lift_views", "lift_view", "lift_views"]
 
 logger = logging.getLogger(__name__)
 
@@ -400,6 +400,48 @@ def _weights_in_order(
             yield pending.popleft().result()
 
 
+def iter_lift_views(
+    gaussians: Gaussians,
+    cameras: Cameras,
+    guidance: Sequence[ViewGuidance],
+    config: LiftConfig = LiftConfig(),
+    progress: Callable[[int, int], None] | None = None,
+) -> Iterator[ViewLift]:
+    """:func:`lift_views` one view at a time, in camera order (the same views): a caller that
+    does not keep them all holds only the views being computed.
+
+    Raises:
+        InputError: as :func:`lift_views`, before the first view is computed.
+    """
+    config.check()
+    if [view.stem for view in guidance] != list(cameras.stems):
+        raise InputError("guidance", "must hold one view per camera, in camera order (by stem)")
+    for i, view in enumerate(guidance):
+        _segments(gaussians, cameras.select([i]), view)  # check every size before any work
+    return _lifted(gaussians, cameras, guidance, config, progress)
+
+
+def _lifted(
+    gaussians: Gaussians,
+    cameras: Cameras,
+    guidance: Sequence[ViewGuidance],
+    config: LiftConfig,
+    progress: Callable[[int, int], None] | None,
+) -> Iterator[ViewLift]:
+    views = _weights_in_order(
+        gaussians,
+        cameras,
+        lambda i: _segments(gaussians, cameras.select([i]), guidance[i]),
+        len(guidance),
+        config,
+    )
+    for index, segments, weights in views:
+        view = _decide(weights, guidance[index], segments, index, config)
+        yield view.check(len(gaussians), source=f"lift of {guidance[index].stem}")
+        if progress is not None:
+            progress(index + 1, len(guidance))
+
+
 def lift_views(
     gaussians: Gaussians,
     cameras: Cameras,
@@ -416,24 +458,7 @@ def lift_views(
         InputError: the guidance does not match the cameras one to one by stem, a view's
             resolution differs, or the backend cannot run on the device.
     """
-    config.check()
-    if [view.stem for view in guidance] != list(cameras.stems):
-        raise InputError("guidance", "must hold one view per camera, in camera order (by stem)")
-    for i, view in enumerate(guidance):
-        _segments(gaussians, cameras.select([i]), view)  # check every size before any work
-    lifted = []
-    views = _weights_in_order(
-        gaussians,
-        cameras,
-        lambda i: _segments(gaussians, cameras.select([i]), guidance[i]),
-        len(guidance),
-        config,
-    )
-    for index, segments, weights in views:
-        view = _decide(weights, guidance[index], segments, index, config)
-        lifted.append(view.check(len(gaussians), source=f"lift of {guidance[index].stem}"))
-        if progress is not None:
-            progress(index + 1, len(guidance))
+    lifted = list(iter_lift_views(gaussians, cameras, guidance, config, progress))
     labelled = sum(int((view.labels[:, 1] >= 0).sum()) for view in lifted)
     logger.info("lifted %d views (%s): %d level-s labels", len(lifted), config.method, labelled)
     return lifted

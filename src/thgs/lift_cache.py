@@ -26,7 +26,7 @@ import hashlib
 import json
 import logging
 import os
-from collections.abc import Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -87,9 +87,18 @@ def lift_cache_path(folder: str | os.PathLike[str], key: str) -> Path:
     return Path(folder) / f"lift-{key}.safetensors"
 
 
-def read_cached_lift(path: str | os.PathLike[str], key: str, views: int) -> list[ViewLift] | None:
+def read_cached_lift(
+    path: str | os.PathLike[str],
+    key: str,
+    views: int,
+    collect: Callable[[Iterator[ViewLift]], Sequence[ViewLift]] = list,
+) -> Sequence[ViewLift] | None:
     """The ``views`` lifts stored at ``path`` for ``key``, on the CPU; None when there is no
-    such file, or (with a logged warning) when it cannot be read or does not match."""
+    such file, or (with a logged warning) when it cannot be read or does not match.
+
+    ``collect`` receives the views one at a time, in order, and returns what is kept (default:
+    a list); an error it raises while collecting (:class:`thgs.InputError` included) makes the
+    cache unusable like a damaged file."""
     from safetensors import SafetensorError, safe_open
 
     path = Path(path)
@@ -104,10 +113,10 @@ def read_cached_lift(path: str | os.PathLike[str], key: str, views: int) -> list
                 views,
             ):
                 raise ValueError("written for other inputs")
-            lifted = [
+            lifted = collect(
                 ViewLift(*(handle.get_tensor(f"v{i}.{name}") for name in _FIELDS))
                 for i in range(views)
-            ]
+            )
     except (SafetensorError, OSError, KeyError, ValueError, TypeError) as error:
         logger.warning("lift cache %s unusable (%s): lifting again", path, error)
         return None
@@ -115,17 +124,43 @@ def read_cached_lift(path: str | os.PathLike[str], key: str, views: int) -> list
     return lifted
 
 
-def write_lift(path: str | os.PathLike[str], key: str, lifted: Sequence[ViewLift]) -> None:
-    """Store ``lifted`` (one :class:`ViewLift` per view) for ``key`` at ``path``, atomically."""
-    from safetensors.torch import save
+_SAFETENSORS_DTYPES = {
+    torch.int16: "I16",
+    torch.int32: "I32",
+    torch.int64: "I64",
+    torch.float32: "F32",
+    torch.float64: "F64",
+}
+"""safetensors' names of the dtypes a :class:`ViewLift` holds."""
 
-    tensors = {
-        f"v{i}.{name}": getattr(view, name).detach().cpu().contiguous()
-        for i, view in enumerate(lifted)
-        for name in _FIELDS
-    }
+
+def write_lift(path: str | os.PathLike[str], key: str, lifted: Sequence[ViewLift]) -> None:
+    """Store ``lifted`` (one :class:`ViewLift` per view) for ``key`` at ``path``, atomically.
+
+    The file is safetensors, written one view at a time (the library writes only from tensors
+    all held at once, and a lift kept in a :class:`thgs.lift_store.LiftStore` is not): a header
+    listing every tensor's dtype, shape and byte range, padded to 8 bytes, then the tensors'
+    bytes in that order. It is read back through safetensors (:func:`read_cached_lift`).
+    """
+    entries, offset = {}, 0
+    for i, view in enumerate(lifted):
+        for name in _FIELDS:
+            tensor = getattr(view, name)
+            size = tensor.numel() * tensor.element_size()
+            entries[f"v{i}.{name}"] = {
+                "dtype": _SAFETENSORS_DTYPES[tensor.dtype],
+                "shape": list(tensor.shape),
+                "data_offsets": [offset, offset + size],
+            }
+            offset += size
     header = {"format": _FORMAT, "version": LIFT_CACHE_VERSION, "key": key, "views": len(lifted)}
-    data = save(tensors, metadata={"thgs": json.dumps(header, sort_keys=True)})
+    entries["__metadata__"] = {"thgs": json.dumps(header, sort_keys=True)}
+    text = json.dumps(entries, separators=(",", ":")).encode()
+    text += b" " * (-len(text) % 8)
     with atomic_output(path) as handle:
-        handle.write(data)
-    logger.info("lift written to the cache %s (%.1f MB)", path, len(data) / 1e6)
+        handle.write(len(text).to_bytes(8, "little"))
+        handle.write(text)
+        for view in lifted:
+            for name in _FIELDS:
+                handle.write(getattr(view, name).detach().cpu().contiguous().numpy().tobytes())
+    logger.info("lift written to the cache %s (%.1f MB)", path, (8 + len(text) + offset) / 1e6)

@@ -14,12 +14,13 @@ import json
 import logging
 import os
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
+import torch
 
 from thgs._config_json import config_from_json
 from thgs._json import load_json
@@ -44,8 +45,9 @@ from thgs.hierarchy import (
     group_repeated_parts,
     merge_levels,
 )
-from thgs.lift import LiftConfig, ViewLift, lift_views
+from thgs.lift import LiftConfig, ViewLift, iter_lift_views
 from thgs.lift_cache import lift_cache_path, lift_key, read_cached_lift, write_lift
+from thgs.lift_store import DEFAULT_LIFT_MEMORY, LiftStore, lift_bytes
 from thgs.render import RasterConfig
 from thgs.scene import Cameras, Gaussians
 
@@ -243,7 +245,9 @@ class LiftedScene:
 
     Attributes:
         gaussians: the N Gaussians; cameras: the M cameras, in guidance order.
-        lifted: one :class:`thgs.lift.ViewLift` per view.
+        lifted: one :class:`thgs.lift.ViewLift` per view: a list, or a
+            :class:`thgs.lift_store.LiftStore` reading them back from a temporary file when
+            they outgrew the memory budget of :func:`lift_scene`.
         config: the lifting settings used.
         views_without_masks: views whose guidance has no mask.
         seconds: wall time of the lifting.
@@ -251,7 +255,7 @@ class LiftedScene:
 
     gaussians: Gaussians
     cameras: Cameras
-    lifted: list[ViewLift]
+    lifted: Sequence[ViewLift]
     config: LiftConfig
     views_without_masks: int
     seconds: float
@@ -262,6 +266,30 @@ def _check_features(guidance: Sequence[ViewGuidance]) -> None:
         raise InputError("guidance", "has no mask features (need [masks, D] with D ≥ 1)")
 
 
+def _held(
+    views: Iterable[ViewLift], memory: int | None, device: torch.device
+) -> Sequence[ViewLift]:
+    """``views`` kept in a list, moved into a :class:`LiftStore` once they exceed ``memory``
+    bytes (None: never)."""
+    held: list[ViewLift] | LiftStore = []
+    total = 0
+    for view in views:
+        if isinstance(held, list) and memory is not None:
+            total += lift_bytes(view)
+            if total > memory:
+                store = LiftStore(device)
+                for kept in held:
+                    store.append(kept)
+                held = store
+                logger.info(
+                    "lift: over %.2f GB after %d views, kept in a temporary file",
+                    memory / 1e9,
+                    len(store),
+                )
+        held.append(view)
+    return held
+
+
 def lift_scene(
     scene: PosedScene,
     guidance: Sequence[ViewGuidance],
@@ -269,6 +297,7 @@ def lift_scene(
     progress: Progress | None = None,
     *,
     cache: str | os.PathLike[str] | None = None,
+    memory: int | None = DEFAULT_LIFT_MEMORY,
 ) -> LiftedScene:
     """Every view's masks lifted onto the Gaussians, after checking the inputs (the first stage
     of :func:`partition_scene` and :func:`build_field`).
@@ -277,10 +306,15 @@ def lift_scene(
         cache: a folder keeping lifts (:mod:`thgs.lift_cache`): a lift of the same Gaussians,
             cameras, guidance and settings is read from it instead of computed (the same
             tensors), and a computed one is written to it. None: no cache.
+        memory: bytes of lifted views held in memory; past that the views go to a temporary
+            file (:class:`thgs.lift_store.LiftStore`) and are read back when used. The same
+            views either way. None: always in memory.
 
     Raises:
-        InputError: the inputs :func:`partition_scene` refuses.
+        InputError: the inputs :func:`partition_scene` refuses, or ``memory`` is negative.
     """
+    if memory is not None and (isinstance(memory, bool) or memory < 0):
+        raise InputError("memory", f"must be a number of bytes ≥ 0 or None, got {memory!r}")
     gaussians, cameras = _checked_inputs(scene, guidance)
     empty = [view.stem for view in guidance if not (view.segments >= 0).any()]
     if len(empty) == len(guidance):
@@ -290,19 +324,28 @@ def lift_scene(
             "%d of %d views have no masks (first: %s)", len(empty), len(guidance), empty[0]
         )
     started = time.perf_counter()
-    key = cached = None
+    device = gaussians.device
+    key = lifted = None
     if cache is not None:
         key = lift_key(gaussians, cameras, guidance, config)
-        cached = read_cached_lift(lift_cache_path(cache, key), key, len(guidance))
-    if cached is not None:
-        lifted = [
-            view.to(gaussians.device).check(len(gaussians), source=f"cached lift of {g.stem}")
-            for view, g in zip(cached, guidance)
-        ]
+        lifted = read_cached_lift(
+            lift_cache_path(cache, key),
+            key,
+            len(guidance),
+            collect=lambda views: _held(
+                (
+                    view.to(device).check(len(gaussians), source=f"cached lift of {g.stem}")
+                    for view, g in zip(views, guidance)
+                ),
+                memory,
+                device,
+            ),
+        )
+    if lifted is not None:
         if progress is not None:
             progress("lift", len(lifted), len(lifted))
     else:
-        lifted = lift_views(
+        views = iter_lift_views(
             gaussians,
             cameras,
             guidance,
@@ -311,6 +354,7 @@ def lift_scene(
             if progress is None
             else lambda done, total: progress("lift", done, total),
         )
+        lifted = _held(views, memory, device)
         if cache is not None and key is not None:
             write_lift(lift_cache_path(cache, key), key, lifted)
     seconds = time.perf_counter() - started
@@ -758,6 +802,7 @@ def build_field(
     space: str,
     progress: Progress | None = None,
     lift_cache: str | os.PathLike[str] | None = None,
+    lift_memory: int | None = DEFAULT_LIFT_MEMORY,
 ) -> SemanticField:
     """The semantic field of a scene: lift → graph → reweight → partition → merge → features.
 
@@ -782,6 +827,9 @@ def build_field(
         lift_cache: a folder to keep and reuse the lift in (:func:`lift_scene`'s ``cache``):
             builds that differ only after the lift (merging, features, partition settings) lift
             once.
+        lift_memory: bytes of lifted views held in memory (:func:`lift_scene`'s ``memory``,
+            default 1 GiB); a larger lift is kept in a temporary file and read back view by
+            view. The field is the same.
 
     Returns:
         a checked :class:`thgs.field.SemanticField` with nested levels 0–3 (region counts never
@@ -803,7 +851,9 @@ def build_field(
         raise InputError("space", "name the embedding space of the guidance features")
     _check_features(guidance)
     check_masks(guidance, "guidance")
-    lifted = lift_scene(scene, guidance, config.superpoints.lift, progress, cache=lift_cache)
+    lifted = lift_scene(
+        scene, guidance, config.superpoints.lift, progress, cache=lift_cache, memory=lift_memory
+    )
     built = build_levels(lifted, guidance, config, progress=progress)
     timings = {"lift": lifted.seconds, **built.timings}
     result = SemanticField(
