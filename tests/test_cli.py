@@ -686,7 +686,7 @@ def test_output_paths_are_checked_before_any_work(
     def no_work(*args, **kwargs):
         raise AssertionError("the work started before the output path was checked")
 
-    monkeypatch.setattr(thgs.pipeline, "lift_views", no_work)
+    monkeypatch.setattr(thgs.pipeline, "iter_lift_views", no_work)
     folder = tmp_path / "taken"
     folder.mkdir()
     blocker = tmp_path / "file"

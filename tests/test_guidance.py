@@ -9,6 +9,7 @@ import torch
 from thgs import Cameras, InputError
 from thgs.guidance import (
     EMBEDDING_FILE,
+    GuidanceFolder,
     ViewGuidance,
     check_masks,
     guidance_space,
@@ -166,6 +167,32 @@ def test_load_guidance_matches_cameras(tmp_path):
     langsplat_files(tmp_path, "d", example_levels(), features(8, d=5))
     with pytest.raises(InputError, match="feature dimension 5, other views have 6"):
         load_guidance(tmp_path, cameras_for(["a", "d"], 3, 2))
+
+
+def test_lazy_guidance_reads_the_same_views_on_access(tmp_path):
+    """lazy=True: the same views (resampled too), read from the files on each access; every
+    problem is found when loading, before any view is used."""
+    for i, stem in enumerate(("b", "a", "c")):
+        langsplat_files(tmp_path, stem, example_levels(), features(8, seed=i))
+    for cameras, resize in ((cameras_for(["a", "b", "c"], 3, 2), False),
+                            (cameras_for(["c", "a"], 6, 4), True)):  # fmt: skip
+        eager = load_guidance(tmp_path, cameras, resize=resize)
+        lazy = load_guidance(tmp_path, cameras, resize=resize, lazy=True)
+        assert isinstance(lazy, GuidanceFolder) and len(lazy) == len(eager)
+        for got in (list(lazy), [lazy[i] for i in range(len(lazy))], lazy[::-1][::-1]):
+            for x, y in zip(got, eager, strict=True):
+                assert x.stem == y.stem
+                np.testing.assert_array_equal(x.segments, y.segments)
+                np.testing.assert_array_equal(x.features, y.features)
+        assert lazy[-1].stem == eager[-1].stem
+    with pytest.raises(InputError, match=r"masks are 3×2 but the camera is 6×4"):
+        load_guidance(tmp_path, cameras_for(["a"], 6, 4), lazy=True)
+    langsplat_files(tmp_path, "d", example_levels(), features(8, d=5))
+    with pytest.raises(InputError, match="feature dimension 5, other views have 6"):
+        load_guidance(tmp_path, cameras_for(["a", "d"], 3, 2), lazy=True)
+    (tmp_path / "b_s.npy").write_bytes(b"not an array")
+    with pytest.raises(InputError, match=r"b_s\.npy: not a readable \.npy file"):
+        load_guidance(tmp_path, cameras_for(["a", "b"], 3, 2), lazy=True)
 
 
 def _views(dims_and_masks):

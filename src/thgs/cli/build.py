@@ -158,7 +158,7 @@ def build(
                 f"language features folder not found{_unfound_source(loaded)}; pass --source "
                 "with the training data folder that holds language_features/, or --guidance",
             )
-    views = load_guidance(guidance, loaded.cameras, resize=resize)
+    views = load_guidance(guidance, loaded.cameras, resize=resize, lazy=True)
     check_masks(views, guidance)
     recorded = read_embedding_space(guidance)
     if space is not None and recorded is not None and recorded[0] != space:

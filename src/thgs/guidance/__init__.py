@@ -3,6 +3,7 @@
 from thgs.guidance.langsplat import (
     EMBEDDING_FILE,
     LEVELS,
+    GuidanceFolder,
     ViewGuidance,
     check_masks,
     guidance_folder,
@@ -19,6 +20,7 @@ from thgs.guidance.langsplat import (
 __all__ = [
     "EMBEDDING_FILE",
     "LEVELS",
+    "GuidanceFolder",
     "ViewGuidance",
     "check_masks",
     "guidance_folder",

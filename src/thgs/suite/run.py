@@ -381,7 +381,7 @@ def _build(scene: SuiteScene, folder: Path, config: SuiteConfig) -> dict[str, An
     if loaded.cameras is None:
         raise InputError(scene.model, "no cameras (neither the data folder's nor cameras.json)")
     guidance = _guidance(scene, folder)
-    views = load_guidance(guidance, loaded.cameras)
+    views = load_guidance(guidance, loaded.cameras, lazy=True)
     check_masks(views, guidance)
     space = guidance_space(guidance, views)
     model = read_embedding_model(guidance)
