@@ -14,7 +14,7 @@ from safetensors import safe_open
 from safetensors.torch import load_file
 
 from test_lift_cache import inputs, same_lifts  # noqa: F401 - the module fixture
-from thgs import InputError
+from thgs import InputError, ThgsError
 from thgs.lift import ViewLift
 from thgs.lift_cache import lift_cache_path, lift_key, read_cached_lift, write_lift
 from thgs.lift_store import LiftStore, lift_bytes
@@ -101,3 +101,15 @@ def test_the_cache_is_safetensors_and_reads_into_a_store(inputs, tmp_path):  # n
     key = lift_key(scene.gaussians, scene.cameras, guidance, config)
     cached = read_cached_lift(lift_cache_path(tmp_path, key), key, len(guidance))
     same_lifts(cached, list(first.lifted))
+
+
+def test_a_folder_that_cannot_hold_the_file_is_named(tmp_path):
+    missing = tmp_path / "gone"
+    with pytest.raises(ThgsError, match=rf"temporary file in {missing} .*TMPDIR"):
+        LiftStore("cpu", folder=missing)
+    store = LiftStore("cpu", folder=tmp_path)
+    (tmp_path / "read-only").write_bytes(b"")
+    store._file = open(tmp_path / "read-only", "rb")  # writes fail, as on a full disk
+    with pytest.raises(ThgsError, match=rf"temporary file in {tmp_path} "):
+        store.append(random_views(2)[0])
+    assert len(store) == 0

@@ -24,6 +24,7 @@ from typing import overload
 import numpy as np
 import torch
 
+from thgs.errors import ThgsError
 from thgs.lift import ViewLift
 
 __all__ = ["DEFAULT_LIFT_MEMORY", "LiftStore", "lift_bytes"]
@@ -50,11 +51,19 @@ class LiftStore(Sequence[ViewLift]):
         folder: the folder of the temporary file (default: the system's, ``TMPDIR``). The file is
             unlinked as soon as it is created, so nothing is left behind, even by a killed
             process; its space is returned when the store is closed or collected.
+
+    Raises:
+        ThgsError: the file cannot be created or written (a missing folder, a full disk),
+            naming the folder and what to do.
     """
 
     def __init__(self, device: torch.device | str, folder: str | os.PathLike[str] | None = None):
         self.device = torch.device(device)
-        self._file = tempfile.TemporaryFile(prefix="thgs-lift-", dir=folder)
+        self.folder = os.fspath(folder) if folder is not None else tempfile.gettempdir()
+        try:
+            self._file = tempfile.TemporaryFile(prefix="thgs-lift-", dir=self.folder)
+        except OSError as error:
+            raise ThgsError(self._problem(error)) from error
         self._size = 0
         # per view: its offset, its Gaussian count and its labels' dtype
         self._index: list[tuple[int, int, np.dtype]] = []
@@ -70,11 +79,21 @@ class LiftStore(Sequence[ViewLift]):
             view.max_weights.detach().cpu().numpy().astype(np.float32, copy=False),
         )
         offset = self._size
-        for array in arrays:
-            data = np.ascontiguousarray(array).tobytes()
-            os.pwrite(self._file.fileno(), data, self._size)
-            self._size += len(data)
+        try:
+            for array in arrays:
+                data = np.ascontiguousarray(array).tobytes()
+                if os.pwrite(self._file.fileno(), data, self._size) != len(data):
+                    raise OSError(f"a short write of view {len(self)}")
+                self._size += len(data)
+        except OSError as error:
+            raise ThgsError(self._problem(error)) from error
         self._index.append((offset, n, labels.dtype))
+
+    def _problem(self, error: OSError) -> str:
+        return (
+            f"cannot keep the lift in a temporary file in {self.folder} ({error}): point TMPDIR "
+            "at a folder with room for it, or hold it in memory (a larger lift_memory)"
+        )
 
     def __len__(self) -> int:
         return len(self._index)
