@@ -113,3 +113,4 @@ def test_a_folder_that_cannot_hold_the_file_is_named(tmp_path):
     with pytest.raises(ThgsError, match=rf"temporary file in {tmp_path} "):
         store.append(random_views(2)[0])
     assert len(store) == 0
+    store.close()
