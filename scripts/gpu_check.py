@@ -39,6 +39,7 @@ import xml.etree.ElementTree as ElementTree
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, replace
+from functools import partial
 from multiprocessing import get_context
 from pathlib import Path
 
@@ -49,7 +50,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from bench_partition import HashEncoder  # noqa: E402
-from bench_preprocess import save_clip, save_sam  # noqa: E402
+from bench_preprocess import save_clip, save_sam, timed  # noqa: E402
 from bench_render import block_labels, front_camera, surface_scene  # noqa: E402
 
 from thgs._atomic import atomic_output  # noqa: E402
@@ -164,22 +165,10 @@ NEEDS_S = {"kernels": 150, "cuda_tests": 60, "render": 60, "build": 200, "prepro
 TINY_NEEDS_S = {name: 5 for name in NEEDS_S}
 
 
-def _sync(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
-
-
 def _best_seconds(call: Callable[[], object], device: torch.device, repeats: int) -> float:
     """The fastest of ``repeats`` timed calls after one warm-up."""
     call()
-    times = []
-    for _ in range(repeats):
-        _sync(device)
-        start = time.perf_counter()
-        call()
-        _sync(device)
-        times.append(time.perf_counter() - start)
-    return min(times)
+    return min(timed(call, device.type)[1] for _ in range(repeats))
 
 
 def _peak_reset(device: torch.device) -> None:
@@ -193,7 +182,7 @@ def _peak_gib(device: torch.device) -> float | None:
     return round(torch.cuda.max_memory_allocated(device) / 2**30, 3)
 
 
-def environment(sizes: Sizes, tiny: bool) -> dict:
+def environment(tiny: bool) -> dict:
     from importlib.metadata import PackageNotFoundError, version
 
     versions = {}
@@ -226,7 +215,7 @@ def _unrunnable(name: str, sizes: Sizes) -> str | None:
     return None
 
 
-def kernels(sizes: Sizes) -> dict:
+def kernels() -> dict:
     start = time.perf_counter()
     from gsplat.cuda._backend import _C
 
@@ -235,7 +224,7 @@ def kernels(sizes: Sizes) -> dict:
     return {"seconds": round(time.perf_counter() - start, 1)}
 
 
-def cuda_tests(sizes: Sizes) -> dict:
+def cuda_tests() -> dict:
     with tempfile.TemporaryDirectory() as folder:
         report = Path(folder) / "junit.xml"
         command = [
@@ -423,11 +412,9 @@ def preprocess_step(sizes: Sizes, clip_masks: int) -> dict:
                 stability_threshold=0.0,
                 nms_score_threshold=0.0,
             )
-            _sync(device)
-            start = time.perf_counter()
-            levels = generate_masks(segmenter, image, everything)
-            _sync(device)
-            every_candidate_s = time.perf_counter() - start
+            levels, every_candidate_s = timed(
+                partial(generate_masks, segmenter, image, everything), sizes.device
+            )
             scores = torch.cat([level.predicted_iou.float().cpu() for level in levels.values()])
             ranked = torch.sort(scores, descending=True).values
             threshold = float(ranked[clip_masks]) if len(ranked) > clip_masks else 0.0
@@ -488,9 +475,9 @@ def main(argv: list[str] | None = None) -> int:
     deadline = time.monotonic() + args.deadline_s
     report: dict = {"setup_s": args.setup_s, "sizes": {**sizes.__dict__}, "steps": {}}
     steps: dict[str, Callable[[], dict]] = {
-        "environment": lambda: environment(sizes, args.tiny),
-        "kernels": lambda: kernels(sizes),
-        "cuda_tests": lambda: cuda_tests(sizes),
+        "environment": lambda: environment(args.tiny),
+        "kernels": kernels,
+        "cuda_tests": cuda_tests,
         "render": lambda: render_step(sizes),
         "build": lambda: build_step(sizes, args.seed),
         "preprocess": lambda: preprocess_step(sizes, args.clip_masks or sizes.clip_masks),
@@ -502,8 +489,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.steps is not None and name not in args.steps:
             continue
         left = deadline - time.monotonic()
-        if _unrunnable(name, sizes):
-            entry = {"status": "skipped", "why": _unrunnable(name, sizes)}
+        if why := _unrunnable(name, sizes):
+            entry = {"status": "skipped", "why": why}
         elif name in needs and left < needs[name]:
             entry = {"status": "skipped", "why": f"{left:.0f} s left, {needs[name]} s needed"}
         else:
