@@ -18,7 +18,7 @@ from __future__ import annotations
 import logging
 import os
 import tempfile
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from typing import overload
 
 import numpy as np
@@ -120,10 +120,6 @@ class LiftStore(Sequence[ViewLift]):
         gaussians, labels, depths, max_weights = (torch.from_numpy(a) for a in arrays)
         return ViewLift(gaussians, labels.reshape(n, 4), depths, max_weights).to(self.device)
 
-    def __iter__(self) -> Iterator[ViewLift]:
-        for index in range(len(self)):
-            yield self[index]
-
     @property
     def nbytes(self) -> int:
         """Bytes written to the file."""
@@ -147,7 +143,3 @@ class _Selection(Sequence[ViewLift]):
         if isinstance(index, slice):
             return _Selection(self._store, self._indices[index])
         return self._store[self._indices[index]]
-
-    def __iter__(self) -> Iterator[ViewLift]:
-        for index in self._indices:
-            yield self._store[index]
