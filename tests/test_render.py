@@ -90,6 +90,44 @@ def test_backend_matches_brute_force(backend, kind, seed, principal):
     torch.testing.assert_close(back.depths, gaussians.means[:, 2].double())
 
 
+@pytest.mark.parametrize("filter_inv_square", [0.02, 2.0, 50.0])
+def test_edge_on_surfels_match_brute_force(filter_inv_square):
+    """2DGS surfels seen nearly edge-on, large and small, against the brute force: the numba
+    backend visits only the x-span of each row where ρ can be within reach (the ray term's
+    quadratic and the screen filter's interval), so a span too narrow would drop weights."""
+    g = torch.Generator().manual_seed(11)
+    n = 120
+    means = torch.cat(
+        [(torch.rand(n, 2, generator=g) - 0.5) * 3, torch.rand(n, 1, generator=g) * 3 + 1.5], 1
+    )
+    # normals nearly perpendicular to the ray to the centre: tilted 80–89.9° away from it
+    ray = means / means.norm(dim=1, keepdim=True)
+    side = torch.nn.functional.normalize(
+        torch.cross(ray, torch.randn(n, 3, generator=g), dim=1), dim=1
+    )
+    tilt = torch.deg2rad(80 + torch.rand(n, generator=g) * 9.9)[:, None]
+    normal = torch.cos(tilt) * ray + torch.sin(tilt) * side
+    # the quaternion turning z onto the normal
+    axis = torch.cross(torch.tensor([0.0, 0.0, 1.0]).expand(n, 3), normal, dim=1)
+    half = 0.5 * torch.acos(normal[:, 2].clamp(-1, 1))[:, None]
+    quats = torch.cat(
+        [torch.cos(half), torch.sin(half) * torch.nn.functional.normalize(axis, dim=1)], dim=1
+    )
+    scales = torch.rand(n, 2, generator=g) * 3.5 - 4.0
+    opacities = torch.randn(n, generator=g) * 2 + 2
+    gaussians = Gaussians(means, quats, scales, opacities, torch.randn(n, 1, 3, generator=g))
+    gaussians = gaussians.check()
+    cam = camera(cx=20.3, cy=21.7)
+    config = RasterConfig(tile_size=8, backend="numba", filter_inv_square=filter_inv_square)
+    features = torch.randn(n, 4, dtype=torch.float64, generator=g)
+    expected = ReferenceBackend().render(gaussians, cam, features, config)
+    assert int((expected.alpha > 0.1).sum()) > 100, "the surfels must cover pixels"
+    out = render(gaussians, cam, features, config=config)
+    torch.testing.assert_close(out.image, expected.image, atol=1e-12, rtol=1e-10)
+    torch.testing.assert_close(out.alpha, expected.alpha, atol=1e-12, rtol=1e-10)
+    assert torch.equal(out.max_id, expected.max_id)
+
+
 @pytest.mark.parametrize("kind", ["2dgs", "3dgs"])
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_numba_projection_matches_torch(kind, seed):

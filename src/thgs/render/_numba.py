@@ -339,6 +339,38 @@ def _row_lists(m, y0, rows_in_tile, boxes, rows, row_counts):  # pragma: no cove
 
 
 @numba.njit(inline="always")
+def _surfel_span(ax, ay, az, bx, by, bz, center_x, filter_inv_square, filter_row, two_limit):
+    """``(low, high)``: the x of a row where a 2DGS Gaussian's ρ can be ≤ ``two_limit`` (2σ at
+    its reach); empty when low > high, unbounded when a side is infinite.
+
+    ρ is the smaller of the screen filter ``f·(dx² + dy²)`` (``filter_row`` = f·dy²) and the ray
+    term ``(q_x² + q_y²) / q_z²`` with ``q(x) = x·a − b``. The filter's set is an interval around
+    ``center_x``; the ray term's is ``A·x² + B·x + C ≤ 0``, an interval when A > 0 (else its
+    complement or everything: no bound). The hull of the two is returned: a superset of the
+    pixels whose σ is within reach, so skipping the others changes nothing.
+    """  # pragma: no cover - compiled
+    quad_a = ax * ax + ay * ay - two_limit * az * az
+    if not quad_a > 0.0:
+        return -math.inf, math.inf
+    quad_b = -2.0 * (ax * bx + ay * by - two_limit * az * bz)
+    quad_c = bx * bx + by * by - two_limit * bz * bz
+    disc = quad_b * quad_b - 4.0 * quad_a * quad_c
+    low, high = math.inf, -math.inf
+    if disc >= 0.0:
+        root = math.sqrt(disc)
+        low, high = (-quad_b - root) / (2.0 * quad_a), (-quad_b + root) / (2.0 * quad_a)
+    room = two_limit - filter_row
+    if room >= 0.0:
+        if not filter_inv_square > 0.0:
+            return -math.inf, math.inf
+        half = math.sqrt(room / filter_inv_square)
+        low, high = min(low, center_x - half), max(high, center_x + half)
+    if math.isnan(low) or math.isnan(high):
+        return -math.inf, math.inf
+    return low, high
+
+
+@numba.njit(inline="always")
 def _composite_row(
     py, x_low, x_high, row, count, kind, local, settings, transmittance, done, out
 ):  # pragma: no cover - compiled
@@ -400,6 +432,16 @@ def _composite_row(
             by = p[j, 2] * vx - p[j, 0] * vz
             bz = p[j, 0] * vy - p[j, 1] * vx
             filter_row = filter_inv_square * dy * dy
+            reach_rho = 2.0 * (limit + _REACH_MARGIN)
+            low, high = _surfel_span(
+                ax, ay, az, bx, by, bz, centres[j, 0], filter_inv_square, filter_row, reach_rho
+            )
+            if low > high:
+                continue
+            if math.isfinite(low) and math.isfinite(high):
+                # x = px + ½ within [low, high], one pixel more on each side against rounding
+                first = max(first, min(math.ceil(low - 0.5) - 1, end))
+                end = min(end, max(math.floor(high - 0.5) + 2, first))
         for px in range(first, end):
             c = px - x_low
             if done[c]:
