@@ -19,6 +19,7 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Protocol
 
+import numba
 import numpy as np
 import torch
 
@@ -48,6 +49,7 @@ from thgs.hierarchy import (
 from thgs.lift import LiftConfig, ViewLift, iter_lift_views
 from thgs.lift_cache import lift_cache_path, lift_key, read_cached_lift, write_lift
 from thgs.lift_store import DEFAULT_LIFT_MEMORY, LiftStore, lift_bytes
+from thgs.memory import check_build_memory
 from thgs.render import RasterConfig
 from thgs.scene import Cameras, Gaussians
 
@@ -312,10 +314,22 @@ def lift_scene(
 
     Raises:
         InputError: the inputs :func:`partition_scene` refuses, or ``memory`` is negative.
+        ThgsError: the device has less memory left than the build needs at least
+            (:func:`thgs.memory.check_build_memory`), before any work.
     """
     if memory is not None and (isinstance(memory, bool) or memory < 0):
         raise InputError("memory", f"must be a number of bytes ≥ 0 or None, got {memory!r}")
     gaussians, cameras = _checked_inputs(scene, guidance)
+    device = gaussians.device
+    check_build_memory(
+        len(gaussians),
+        len(cameras),
+        int(cameras.widths.max()),
+        int(cameras.heights.max()),
+        memory,
+        numba.get_num_threads() if device.type == "cpu" else 1,
+        device,
+    )
     empty = [view.stem for view in guidance if not (view.segments >= 0).any()]
     if len(empty) == len(guidance):
         logger.warning("no view has any mask: superpoints come from geometry and colour alone")
@@ -324,7 +338,6 @@ def lift_scene(
             "%d of %d views have no masks (first: %s)", len(empty), len(guidance), empty[0]
         )
     started = time.perf_counter()
-    device = gaussians.device
     key = lifted = None
     if cache is not None:
         key = lift_key(gaussians, cameras, guidance, config)
