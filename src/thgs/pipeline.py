@@ -25,6 +25,7 @@ import torch
 
 from thgs._config_json import config_from_json
 from thgs._json import load_json
+from thgs.build_ray import ray_lift_views
 from thgs.errors import InputError
 from thgs.features import FeatureConfig, level_features
 from thgs.field import SemanticField, load_field, scene_fingerprint
@@ -176,6 +177,8 @@ def partition_lifted(
     gaussians: Gaussians,
     lifted: Sequence[ViewLift],
     config: SuperpointConfig = SuperpointConfig(),
+    *,
+    ray: bool = False,
 ) -> tuple[np.ndarray, PartitionReport]:
     """Level-0 superpoints from masks already lifted (:func:`thgs.lift.lift_views`).
 
@@ -183,6 +186,7 @@ def partition_lifted(
         gaussians: the N Gaussians (world frame, scene units).
         lifted: one :class:`thgs.lift.ViewLift` per view.
         config: graph, reweighting and partition settings (``config.lift`` is not used).
+        ray: solve the partition's blocks as Ray tasks (:func:`thgs.graph.partition`).
 
     Returns:
         ``(labels, report)``: [N] int32 superpoint ids 0 … S−1 (see :func:`thgs.graph.partition`)
@@ -205,7 +209,7 @@ def partition_lifted(
     distances = reweight(graph, pos, neg, config.reweight)
     seconds["reweight"] = time.perf_counter() - started
     started = time.perf_counter()
-    labels = partition(gaussians, graph, distances, config.partition)
+    labels = partition(gaussians, graph, distances, config.partition, ray=ray)
     seconds["partition"] = time.perf_counter() - started
     seen = sum(len(view) for view in lifted)
     labelled = sum(int((view.labels[:, config.reweight.level] >= 0).sum()) for view in lifted)
@@ -300,6 +304,7 @@ def lift_scene(
     *,
     cache: str | os.PathLike[str] | None = None,
     memory: int | None = DEFAULT_LIFT_MEMORY,
+    ray: bool = False,
 ) -> LiftedScene:
     """Every view's masks lifted onto the Gaussians, after checking the inputs (the first stage
     of :func:`partition_scene` and :func:`build_field`).
@@ -311,6 +316,8 @@ def lift_scene(
         memory: bytes of lifted views held in memory; past that the views go to a temporary
             file (:class:`thgs.lift_store.LiftStore`) and are read back when used. The same
             views either way. None: always in memory.
+        ray: lift the views as Ray tasks (:func:`thgs.build_ray.ray_lift_views`: the same
+            views), on the Ray this process is connected to (:func:`thgs.cluster.connect_ray`).
 
     Raises:
         InputError: the inputs :func:`partition_scene` refuses, or ``memory`` is negative.
@@ -327,7 +334,7 @@ def lift_scene(
         int(cameras.widths.max()),
         int(cameras.heights.max()),
         memory,
-        numba.get_num_threads() if device.type == "cpu" else 1,
+        0 if ray else numba.get_num_threads() if device.type == "cpu" else 1,
         device,
     )
     empty = [view.stem for view in guidance if not (view.segments >= 0).any()]
@@ -358,7 +365,8 @@ def lift_scene(
         if progress is not None:
             progress("lift", len(lifted), len(lifted))
     else:
-        views = iter_lift_views(
+        lift = ray_lift_views if ray else iter_lift_views
+        views = lift(
             gaussians,
             cameras,
             guidance,
@@ -700,9 +708,10 @@ def merge_lifted(
     config: FieldConfig = FieldConfig(),
     *,
     progress: Progress | None = None,
+    ray: bool = False,
 ) -> MergedLevels:
     """Graph → reweight → partition → merge on views lifted by :func:`lift_scene` (the first
-    half of :func:`build_levels`).
+    half of :func:`build_levels`); with ``ray`` the partition's blocks are solved as Ray tasks.
 
     Raises:
         InputError: ``lifted`` was made with other lifting settings than ``config``'s.
@@ -715,7 +724,7 @@ def merge_lifted(
 
     gaussians = lifted.gaussians
     stage("partition", 0)
-    superpoints, report = partition_lifted(gaussians, lifted.lifted, config.superpoints)
+    superpoints, report = partition_lifted(gaussians, lifted.lifted, config.superpoints, ray=ray)
     stage("partition", 1)
     for name in ("knn", "votes", "reweight", "partition"):
         logger.info("%s: %.2f s", name, report.seconds[name])
@@ -792,9 +801,10 @@ def build_levels(
     config: FieldConfig = FieldConfig(),
     *,
     progress: Progress | None = None,
+    ray: bool = False,
 ) -> BuiltLevels:
     """Graph → reweight → partition → merge → features on views lifted by :func:`lift_scene`
-    (:func:`merge_lifted`, then :func:`describe_levels`).
+    (:func:`merge_lifted`, then :func:`describe_levels`); ``ray`` as :func:`merge_lifted`.
 
     Every merge mode is allowed here, ``independent`` included (its levels need not nest).
 
@@ -803,7 +813,7 @@ def build_levels(
             guidance has no feature dimension.
     """
     _check_features(guidance)  # before the partition, not after it
-    merged = merge_lifted(lifted, config, progress=progress)
+    merged = merge_lifted(lifted, config, progress=progress, ray=ray)
     return describe_levels(merged, lifted, guidance, config, progress=progress)
 
 
@@ -816,6 +826,7 @@ def build_field(
     progress: Progress | None = None,
     lift_cache: str | os.PathLike[str] | None = None,
     lift_memory: int | None = DEFAULT_LIFT_MEMORY,
+    ray: bool = False,
 ) -> SemanticField:
     """The semantic field of a scene: lift → graph → reweight → partition → merge → features.
 
@@ -843,6 +854,9 @@ def build_field(
         lift_memory: bytes of lifted views held in memory (:func:`lift_scene`'s ``memory``,
             default 1 GiB); a larger lift is kept in a temporary file and read back view by
             view. The field is the same.
+        ray: lift the views and solve the partition's blocks as Ray tasks, on the Ray this
+            process is connected to (:func:`thgs.cluster.connect_ray`; :mod:`thgs.build_ray`).
+            The field is the same.
 
     Returns:
         a checked :class:`thgs.field.SemanticField` with nested levels 0–3 (region counts never
@@ -865,9 +879,15 @@ def build_field(
     _check_features(guidance)
     check_masks(guidance, "guidance")
     lifted = lift_scene(
-        scene, guidance, config.superpoints.lift, progress, cache=lift_cache, memory=lift_memory
+        scene,
+        guidance,
+        config.superpoints.lift,
+        progress,
+        cache=lift_cache,
+        memory=lift_memory,
+        ray=ray,
     )
-    built = build_levels(lifted, guidance, config, progress=progress)
+    built = build_levels(lifted, guidance, config, progress=progress, ray=ray)
     timings = {"lift": lifted.seconds, **built.timings}
     result = SemanticField(
         levels=built.levels,

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import math
 from dataclasses import replace
 from pathlib import Path
@@ -66,6 +67,7 @@ def build(
     device: Literal["auto", "cpu", "cuda", "mps"] = "auto",
     lift_cache: Path | None = None,
     threads: int | None = None,
+    ray: Annotated[str | None, tyro.conf.arg(metavar="[ADDRESS]")] = None,
     verbose: bool = False,
 ) -> None:
     """Build the semantic field of a scene from its views' masks and mask features.
@@ -116,6 +118,9 @@ def build(
             reads it instead of lifting again (docs/build.md).
         threads: CPU threads (default: every core, or NUMBA_NUM_THREADS); the field is the
             same for any number.
+        ray: lift the views and solve the partition's blocks as Ray tasks: --ray starts a
+            local Ray, --ray ADDRESS joins a running cluster (e.g. 10.0.0.1:6379), whose
+            workers need thgs installed; needs thgs[cluster]. The field is the same.
         verbose: log every stage with its time.
     """
     from thgs.device import resolve_device, set_cpu_threads
@@ -178,7 +183,13 @@ def build(
             "the field will not remember its text model (--text-model DIR records one)"
         )
         model = None
-    with stage_progress() as bar:
+    with contextlib.ExitStack() as stack:
+        if ray is not None:
+            from thgs.cli.suite import LOCAL_RAY
+            from thgs.cluster import connect_ray
+
+            stack.enter_context(connect_ray(None if ray == LOCAL_RAY else ray))
+        bar = stack.enter_context(stage_progress())
         field = build_field(
             loaded.to(resolve_device(device)),
             views,
@@ -186,6 +197,7 @@ def build(
             space=space,
             progress=StageBars(bar),
             lift_cache=lift_cache,
+            ray=ray is not None,
         )
     field = record_scene(
         field,

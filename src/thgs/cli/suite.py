@@ -25,10 +25,11 @@ LOCAL_RAY = "local"
 
 
 def bare_ray_flag(argv: Sequence[str]) -> list[str]:
-    """``thgs suite`` arguments with a bare ``--ray`` (last, or followed by another option)
-    given its value ``local``, so that ``--ray`` and ``--ray ADDRESS`` both work."""
+    """``thgs suite`` and ``thgs build`` arguments with a bare ``--ray`` (last, or followed by
+    another option) given its value ``local``, so that ``--ray`` and ``--ray ADDRESS`` both
+    work."""
     args = list(argv)
-    if not args or args[0] != "suite":
+    if not args or args[0] not in ("suite", "build"):
         return args
     fixed: list[str] = []
     for i, arg in enumerate(args):

@@ -526,32 +526,54 @@ _SHARED_FROM = 2000
 start each) are not started: the pieces are solved here."""
 
 
-def _solved(tasks: list[tuple], config: PartitionConfig, workers: int) -> list[np.ndarray]:
+def _shares(sizes: list[int], workers: int) -> list[list[int]]:
+    """Task indices per worker: the largest task first to the least loaded (ties: lower index)."""
+    shares: list[list[int]] = [[] for _ in range(min(workers, len(sizes)))]
+    loads = [0] * len(shares)
+    for i in sorted(range(len(sizes)), key=lambda i: (-sizes[i], i)):
+        lightest = loads.index(min(loads))
+        shares[lightest].append(i)
+        loads[lightest] += sizes[i]
+    return shares
+
+
+def _solved(
+    tasks: list[tuple], config: PartitionConfig, workers: int, ray: bool = False
+) -> list[np.ndarray]:
     """[m] component ids of every ``(features, sources, targets, weights)`` task
     (:func:`_solver_arguments`), in order.
 
-    With ``workers`` > 1 and at least :data:`_SHARED_FROM` vertices besides the largest task,
-    ``workers`` fresh Python processes (:data:`_WORKER`) share the tasks, the largest first to
-    the least loaded; else they are solved here one by one.
+    With ``ray``, or ``workers`` > 1, and at least :data:`_SHARED_FROM` vertices besides the
+    largest task, the tasks are shared out (:func:`_shares`) to Ray tasks, one per CPU of the
+    cluster (:func:`thgs.build_ray.ray_solve`), or to ``workers`` fresh Python processes
+    (:data:`_WORKER`); else they are solved here one by one.
     Every solve is single-threaded, so where it runs does not change its result. Fresh
     processes, not a fork of this one (a fork of a process whose OpenMP runtimes, the
     KD-tree's or torch's, have started threads hangs in the solver) nor multiprocessing's
     spawn (which runs the caller's main module again in every worker).
 
     Raises:
-        ThgsError: a solver process failed (its error output is in the message).
+        ThgsError: a solver process failed (its error output is in the message), or Ray is
+            asked for and not initialised.
     """
     solver = _solver()
     calls = [_solver_arguments(*task, config) for task in tasks]
-    sizes = sorted(len(task[0]) for task in tasks)
-    if workers < 2 or sum(sizes[:-1]) < _SHARED_FROM or not sys.executable:
+    sizes = [len(task[0]) for task in tasks]
+    small = sum(sorted(sizes)[:-1]) < _SHARED_FROM
+    found: list[np.ndarray] = [np.zeros(0)] * len(tasks)
+    if ray and not small:
+        from thgs.build_ray import ray_solve, ray_workers
+
+        shares = _shares(sizes, ray_workers())
+        for share, solved in zip(
+            shares, ray_solve([[calls[i] for i in share] for share in shares])
+        ):
+            for i, components in zip(share, solved):
+                found[i] = components.astype(np.int64)
+        return found
+    if workers < 2 or small or not sys.executable:
         return [solver(*args, **kwargs)[0].astype(np.int64) for args, kwargs in calls]
-    shares: list[list[int]] = [[] for _ in range(min(workers, len(tasks)))]
-    loads = [0] * len(shares)
-    for i in sorted(range(len(tasks)), key=lambda i: (-len(tasks[i][0]), i)):
-        lightest = loads.index(min(loads))
-        shares[lightest].append(i)
-        loads[lightest] += len(tasks[i][0])
+    shares = _shares(sizes, workers)
     processes = []
     try:
         for share in shares:
@@ -568,7 +590,6 @@ def _solved(tasks: list[tuple], config: PartitionConfig, workers: int) -> list[n
                     pickle.dump([calls[i] for i in share], process.stdin, 5)
             except BrokenPipeError:
                 pass  # it died before reading: its exit code and error output say why
-        found: list[np.ndarray] = [np.zeros(0)] * len(tasks)
         for share, (process, errors) in zip(shares, processes):
             output = process.stdout.read()  # type: ignore[union-attr]
             if process.wait() != 0:
@@ -672,6 +693,7 @@ def partition(
     config: PartitionConfig = PartitionConfig(),
     *,
     workers: int | None = None,
+    ray: bool = False,
 ) -> np.ndarray:
     """Level-0 superpoints of N Gaussians.
 
@@ -693,6 +715,8 @@ def partition(
         config: cut-pursuit parameters.
         workers: processes solving pieces at once (None: numba's thread count, the CPU
             threads thgs uses, ``NUMBA_NUM_THREADS``). The result is the same for any number.
+        ray: solve the blocks as Ray tasks instead, one share per CPU of the Ray this process
+            is connected to (:func:`thgs.build_ray.ray_solve`); the same result.
 
     Returns:
         [N] int32 superpoint ids 0 … S−1, numbered in order of each superpoint's smallest
@@ -753,7 +777,7 @@ def partition(
                 inner_weights[edges],
             )
         )
-    for p, found in zip(solved, _solved(tasks, config, workers)):
+    for p, found in zip(solved, _solved(tasks, config, workers, ray)):
         components[members[starts[p] : starts[p + 1]]] += found
     cost = config.regularization * weights.astype(np.float64)
     if seam.any():
