@@ -19,7 +19,7 @@ BLOCKS = ["--set", "superpoints.partition.block_size=1000"]  # several blocks: s
 
 def test_ray_must_be_connected_first():
     assert not ray.is_initialized()
-    scene = generate_scene(preset("synth-small", gaussians=1000, views=2))
+    scene = generate_scene(preset("synth-small", gaussians=4000, views=2))
     with pytest.raises(ThgsError, match=r"Ray is not initialised in this process"):
         next(build_ray.ray_lift_views(scene.gaussians, scene.cameras, []))
     with pytest.raises(ThgsError, match=r"Ray is not initialised in this process"):
