@@ -4,6 +4,7 @@
     .venv/bin/python benchmarks/bench_build.py --presets synth-small --seeds 0 1 2 3
     .venv/bin/python benchmarks/bench_build.py --backends numba torch gsplat   # side by side
     .venv/bin/python benchmarks/bench_build.py --runs numba:cpu gsplat:cuda --no-reference
+    .venv/bin/python benchmarks/bench_build.py --set superpoints.partition.cp_it_max=6
 
 Each (preset, seed) runs in its own process. The guidance is the synthetic oracle's at its default
 fault severity (0.5) with all-MiniLM-L6-v2 text features (as in ``thgs demo``: the grouping of
@@ -83,7 +84,7 @@ def _variants(args: argparse.Namespace) -> dict[str, tuple[FieldConfig, torch.de
             if args.runs:
                 raise
             continue
-        config = FieldConfig.lerf()
+        config = FieldConfig.lerf().with_settings(args.set)
         lift = replace(config.superpoints.lift, raster=raster)
         config = replace(config, superpoints=replace(config.superpoints, lift=lift))
         variants[f"ours {backend} {device}"] = (config, device)
@@ -101,6 +102,13 @@ def options(parser: argparse.ArgumentParser) -> None:
         default=None,
         metavar="BACKEND:DEVICE",
         help="exactly these pairs (e.g. numba:cpu torch:cuda) instead of --backends × --devices",
+    )
+    parser.add_argument(
+        "--set",
+        nargs="*",
+        default=[],
+        metavar="NAME=VALUE",
+        help="settings of ours changed as thgs build --set (superpoints.partition.cp_it_max=6)",
     )
     parser.add_argument(
         "--reference",
