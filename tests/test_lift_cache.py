@@ -4,6 +4,8 @@ what a lift depends on misses, a colour change does not, and a broken file is re
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import json
 import logging
 
 import numpy as np
@@ -11,6 +13,7 @@ import pytest
 import torch
 
 from test_cli import run
+from thgs.errors import InputError
 from thgs.field import load_field
 from thgs.guidance import load_guidance
 from thgs.lift import LiftConfig
@@ -84,7 +87,36 @@ def test_the_key_follows_what_the_lift_depends_on(inputs):
         assert lift_key(gaussians, cameras, guidance, changed) != key
 
 
-@pytest.mark.parametrize("damage", ["truncated", "garbage", "other key", "fewer views"])
+def rewrite_tensor(path, name, change, checksum=False):
+    """``change`` applied in place to the tensor ``name`` of a cache file, its header intact;
+    with ``checksum`` the header's checksum is made to match the new content."""
+    data = bytearray(path.read_bytes())
+    length = int.from_bytes(data[:8], "little")
+    header = json.loads(data[8 : 8 + length])
+    begin, end = (8 + length + offset for offset in header[name]["data_offsets"])
+    dtype = {"I16": np.int16, "I32": np.int32, "F32": np.float32}[header[name]["dtype"]]
+    values = np.frombuffer(bytes(data[begin:end]), dtype=dtype).copy()
+    change(values)
+    data[begin:end] = values.tobytes()
+    if checksum:
+        old = json.loads(header["__metadata__"]["thgs"])["checksum"]
+        new = hashlib.sha256(bytes(data[8 + length :])).hexdigest()
+        data[8 : 8 + length] = data[8 : 8 + length].replace(old.encode(), new.encode())
+    path.write_bytes(bytes(data))
+
+
+@pytest.mark.parametrize(
+    "damage",
+    [
+        "truncated",
+        "garbage",
+        "other key",
+        "fewer views",
+        "zeroed labels",
+        "index out of range",
+        "nan depths",
+    ],
+)
 def test_a_broken_or_foreign_file_is_lifted_again(inputs, tmp_path, caplog, damage):
     scene, guidance = inputs
     config = LiftConfig()
@@ -96,6 +128,13 @@ def test_a_broken_or_foreign_file_is_lifted_again(inputs, tmp_path, caplog, dama
         path.write_bytes(data[: len(data) // 2])
     elif damage == "garbage":
         path.write_bytes(b"not safetensors")
+    elif damage == "zeroed labels":  # header intact: only the checksum can tell
+        for i in range(len(guidance)):
+            rewrite_tensor(path, f"v{i}.labels", lambda values: values.fill(0))
+    elif damage == "index out of range":  # the checksum made to match: the indices tell
+        rewrite_tensor(path, "v1.gaussians", lambda values: values.__setitem__(-1, 10**9), True)
+    elif damage == "nan depths":
+        rewrite_tensor(path, "v2.depths", lambda values: values.__setitem__(0, np.nan), True)
     elif damage == "other key":
         assert read_cached_lift(path, "0" * 64, len(guidance)) is None
         return
@@ -118,3 +157,18 @@ def test_build_reuses_the_lift_from_the_command_line(small_dataset, tmp_path, ca
         assert code == 0, err
     assert len(list(cache.glob("lift-*.safetensors"))) == 1  # the merge setting reused the lift
     assert load_field(second).config["merge"]["rounds"] == 1
+
+
+def test_a_cache_that_is_a_file_stops_before_any_work(inputs, small_dataset, tmp_path, capsys):
+    scene, guidance = inputs
+    taken = tmp_path / "lifts"
+    taken.write_text("mine")
+    out = tmp_path / "a.thgs"
+    argv = ["build", str(small_dataset), "-o", str(out), "--lift-cache", str(taken)]
+    code, _, err = run(argv, capsys)
+    assert code == 2 and "--lift-cache" in err and f"{taken} is a file" in err
+    assert not out.exists() and taken.read_text() == "mine"
+    progress = []
+    with pytest.raises(InputError, match=rf"{taken}: is a file; the lift cache is a folder"):
+        lift_scene(scene, guidance, cache=taken, progress=lambda *step: progress.append(step))
+    assert progress == []

@@ -9,12 +9,15 @@ cache folder holds one safetensors file per key, ``lift-<key>.safetensors``:
     v<i>.labels       int16|int32 [n_i, 4]
     v<i>.depths       float32 [n_i]
     v<i>.max_weights  float32 [n_i]
-    metadata          {"thgs": JSON: format, version, key, views}
+    metadata          {"thgs": JSON: format, version, key, views, checksum}
 
 A hit gives the very tensors the lift computed (bit for bit), so a field built from the cache
 is the field built without it. A file that cannot be read or does not match (truncated,
-corrupt, another key, another view count) is not an error: the lift is recomputed and the file
-rewritten, with a logged warning; a cache must never stop a build. The rasterization's backend
+another key, another view count, content that is not what was written: the SHA-256 of the
+tensors' bytes in file order is stored and checked on every read, so zeroed or altered labels
+are found with the header intact; indices outside the scene or non-finite depths) is not an
+error: the lift is recomputed and the file rewritten, with a warning naming the file; a cache
+must never stop a build, nor be trusted blindly. The rasterization's backend
 and precision are part of the key, so a lift computed in float32 on a GPU is not reused for a
 float64 CPU build or the reverse.
 """
@@ -42,11 +45,17 @@ __all__ = ["LIFT_CACHE_VERSION", "lift_cache_path", "lift_key", "read_cached_lif
 
 logger = logging.getLogger(__name__)
 
-LIFT_CACHE_VERSION = 1
+LIFT_CACHE_VERSION = 2
 """Layout of the cache files; part of the key, so a new layout never reads an old file."""
 
 _FORMAT = "thgs.lift"
 _FIELDS = ("gaussians", "labels", "depths", "max_weights")
+_UNSET = "?" * 64
+"""The checksum's place in a header being written, filled in once the tensors are written."""
+
+
+def _tensor_bytes(tensor: torch.Tensor) -> bytes:
+    return tensor.detach().cpu().contiguous().numpy().tobytes()
 
 
 def _array_bytes(array: np.ndarray | torch.Tensor) -> bytes:
@@ -98,7 +107,8 @@ def read_cached_lift(
 
     ``collect`` receives the views one at a time, in order, and returns what is kept (default:
     a list); an error it raises while collecting (:class:`thgs.InputError` included) makes the
-    cache unusable like a damaged file."""
+    cache unusable like a damaged file, and so does content whose SHA-256 is not the one
+    written, or non-finite depths."""
     from safetensors import SafetensorError, safe_open
 
     path = Path(path)
@@ -113,10 +123,20 @@ def read_cached_lift(
                 views,
             ):
                 raise ValueError("written for other inputs")
-            lifted = collect(
-                ViewLift(*(handle.get_tensor(f"v{i}.{name}") for name in _FIELDS))
-                for i in range(views)
-            )
+            digest = hashlib.sha256()
+
+            def read() -> Iterator[ViewLift]:
+                for i in range(views):
+                    tensors = [handle.get_tensor(f"v{i}.{name}") for name in _FIELDS]
+                    for tensor in tensors:
+                        digest.update(_tensor_bytes(tensor))
+                    if not bool(torch.isfinite(tensors[2]).all()):
+                        raise ValueError(f"view {i} has non-finite depths")
+                    yield ViewLift(*tensors)
+
+            lifted = collect(read())
+            if digest.hexdigest() != header.get("checksum"):
+                raise ValueError("its content is not what was written (checksum)")
     except (SafetensorError, OSError, KeyError, ValueError, TypeError) as error:
         logger.warning("lift cache %s unusable (%s): lifting again", path, error)
         return None
@@ -140,7 +160,8 @@ def write_lift(path: str | os.PathLike[str], key: str, lifted: Sequence[ViewLift
     The file is safetensors, written one view at a time (the library writes only from tensors
     all held at once, and a lift kept in a :class:`thgs.lift_store.LiftStore` is not): a header
     listing every tensor's dtype, shape and byte range, padded to 8 bytes, then the tensors'
-    bytes in that order. It is read back through safetensors (:func:`read_cached_lift`).
+    bytes in that order. The header's checksum, the SHA-256 of those bytes, is written last,
+    in its place. It is read back through safetensors (:func:`read_cached_lift`).
     """
     entries, offset = {}, 0
     for i, view in enumerate(lifted):
@@ -153,14 +174,25 @@ def write_lift(path: str | os.PathLike[str], key: str, lifted: Sequence[ViewLift
                 "data_offsets": [offset, offset + size],
             }
             offset += size
-    header = {"format": _FORMAT, "version": LIFT_CACHE_VERSION, "key": key, "views": len(lifted)}
+    header = {
+        "format": _FORMAT,
+        "version": LIFT_CACHE_VERSION,
+        "key": key,
+        "views": len(lifted),
+        "checksum": _UNSET,
+    }
     entries["__metadata__"] = {"thgs": json.dumps(header, sort_keys=True)}
     text = json.dumps(entries, separators=(",", ":")).encode()
     text += b" " * (-len(text) % 8)
+    digest = hashlib.sha256()
     with atomic_output(path) as handle:
         handle.write(len(text).to_bytes(8, "little"))
         handle.write(text)
         for view in lifted:
             for name in _FIELDS:
-                handle.write(getattr(view, name).detach().cpu().contiguous().numpy().tobytes())
+                data = _tensor_bytes(getattr(view, name))
+                digest.update(data)
+                handle.write(data)
+        handle.seek(8 + text.index(_UNSET.encode()))
+        handle.write(digest.hexdigest().encode())
     logger.info("lift written to the cache %s (%.1f MB)", path, (8 + len(text) + offset) / 1e6)

@@ -326,6 +326,8 @@ def lift_scene(
     """
     if memory is not None and (isinstance(memory, bool) or memory < 0):
         raise InputError("memory", f"must be a number of bytes ≥ 0 or None, got {memory!r}")
+    if cache is not None and Path(cache).exists() and not Path(cache).is_dir():
+        raise InputError(cache, "is a file; the lift cache is a folder (lift_cache, --lift-cache)")
     gaussians, cameras = _checked_inputs(scene, guidance)
     device = gaussians.device
     check_build_memory(

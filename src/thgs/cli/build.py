@@ -139,6 +139,8 @@ def build(
 
     setup_logging(verbose)
     check_output_file(out)
+    if lift_cache is not None and lift_cache.exists() and not lift_cache.is_dir():
+        raise InputError("--lift-cache", f"{lift_cache} is a file; name a folder to keep lifts in")
     if threads is not None:
         set_cpu_threads(threads, "--threads")
     if config is not None and preset is not None:
