@@ -4,6 +4,7 @@ leaves is removed by the next writer of the same target, never what a running on
 
 from __future__ import annotations
 
+import errno
 import os
 import signal
 import stat
@@ -62,6 +63,25 @@ def test_file_failure_keeps_the_old_content(tmp_path, error):
         raise error
     assert target.read_bytes() == b"old"
     assert hidden(tmp_path) == []
+
+
+def test_system_errors_name_the_target_not_the_temporary(tmp_path):
+    """A folder in the target's place (the rename fails on the temporary's name) and a full
+    disk (an error naming no file) are raised naming the target; other files' errors stay."""
+    taken = tmp_path / "taken.npy"
+    taken.mkdir()
+    with pytest.raises(IsADirectoryError) as raised, atomic_output(taken) as handle:
+        handle.write(b"data")
+    assert raised.value.filename == str(taken) and raised.value.strerror == "Is a directory"
+    full = tmp_path / "full.bin"
+    with pytest.raises(OSError) as raised, atomic_output(full):
+        raise OSError(errno.ENOSPC, "No space left on device")
+    assert (raised.value.errno, raised.value.filename) == (errno.ENOSPC, str(full))
+    other = tmp_path / "elsewhere"
+    with pytest.raises(FileNotFoundError) as raised, atomic_output(tmp_path / "x.bin"):
+        open(other)
+    assert raised.value.filename == str(other)
+    assert hidden(tmp_path) == [] and not full.exists()
 
 
 def test_folder_is_moved_in_whole_with_plain_permissions(tmp_path):

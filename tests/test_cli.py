@@ -315,6 +315,29 @@ def test_export_selection_regions_and_labels(small_dataset, small_field, tmp_pat
     assert code == 2 and "nothing to export" in err
 
 
+def test_export_outputs_never_share_a_name(small_field, tmp_path, capsys):
+    """A query named like the whole-scene PLY gets its own name; a set that cannot be written
+    whole leaves none of its files."""
+    from thgs.field import load_field
+    from thgs.scene import read_ply
+
+    out = tmp_path / "export"
+    argv = ["export", str(small_field), "-o", str(out), "--query", "regions object"]
+    code, _, err = run([*argv, "--mode", "level", "--level", "3", "--color-level", "3"], capsys)
+    assert code == 0, err
+    (entry,) = json.loads((out / "selections.json").read_text())["queries"]
+    assert entry["ply"] == str(out / "regions-object-2.ply")
+    assert len(read_ply(out / "regions-object-2.ply")) == entry["gaussians"]
+    assert len(read_ply(out / "regions-object.ply")) == len(load_field(small_field))
+
+    blocked = tmp_path / "blocked"
+    (blocked / "labels.npy").mkdir(parents=True)  # the last file of the set cannot be written
+    argv = ["export", str(small_field), "-o", str(blocked), "--query", "mug", "--color-level", "3"]
+    code, _, err = run([*argv, "--labels"], capsys)
+    assert code != 0 and "labels.npy" in err
+    assert sorted(path.name for path in blocked.iterdir()) == ["labels.npy"]
+
+
 def test_field_without_or_with_another_scene_is_refused(small_field, tmp_path, capsys):
     from dataclasses import replace
 

@@ -144,18 +144,25 @@ def atomic_output(path: str | os.PathLike[str], mode: str = "wb") -> Iterator[IO
     """Open a temporary file next to ``path``; on success flush, fsync and rename it to ``path``.
 
     If the body raises, the temporary file is removed and ``path`` is left as it was (absent, or
-    its previous content). The parent folders are created.
+    its previous content). The parent folders are created. A system error that names no file
+    (a full disk) or names the temporary file (a folder in ``path``'s place) is raised again
+    naming ``path``.
     """
     target = Path(path)
     target.parent.mkdir(parents=True, exist_ok=True)
     with _sibling(target, _new_file) as (tmp, fd):
         try:
             encoding = None if "b" in mode else "utf-8"
-            with os.fdopen(fd, mode, encoding=encoding) as handle:
-                yield handle
-                handle.flush()
-                os.fsync(handle.fileno())
-            os.replace(tmp, target)
+            try:
+                with os.fdopen(fd, mode, encoding=encoding) as handle:
+                    yield handle
+                    handle.flush()
+                    os.fsync(handle.fileno())
+                os.replace(tmp, target)
+            except OSError as error:
+                if error.filename not in (None, str(tmp), tmp):
+                    raise
+                raise OSError(error.errno, error.strerror or str(error), str(target)) from error
         except BaseException:
             with contextlib.suppress(FileNotFoundError):
                 os.unlink(tmp)

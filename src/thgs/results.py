@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import logging
 import os
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -47,13 +47,13 @@ __all__ = [
 logger = logging.getLogger(__name__)
 
 
-def unique_names(texts: Sequence[str]) -> list[str]:
-    """File-name-safe names for queries (:func:`thgs.export.slug`), a repeated one numbered
-    ``-2``, ``-3`` …, in order."""
+def unique_names(texts: Sequence[str], taken: Collection[str] = ()) -> list[str]:
+    """File-name-safe names for queries (:func:`thgs.export.slug`), a repeated one, or one in
+    ``taken`` (names other outputs use), numbered ``-2``, ``-3`` …, in order."""
     names: list[str] = []
     for text in texts:
         name, k = slug(text), 2
-        while name in names:
+        while name in names or name in taken:
             name, k = f"{slug(text)}-{k}", k + 1
         names.append(name)
     return names
@@ -181,15 +181,18 @@ def write_query_selections(
     gaussians: Gaussians,
     *,
     field_name: str,
+    taken: Collection[str] = (),
 ) -> tuple[tuple[Selection, ...], list[Path]]:
-    """Each query's selection as ``<out>/<query>.ply`` (empty ones skipped), then
-    ``selections.json`` listing every query.
+    """Each query's selection as ``<out>/<query>.ply`` (empty ones skipped; names as
+    :func:`unique_names`, clear of ``taken``), then ``selections.json`` listing every query.
+    If a file cannot be written, the ones already written are removed: all or nothing.
 
     Returns:
         the selections, and the written paths (``selections.json`` last).
 
     Raises:
-        InputError: no query, or Gaussians of another number than the engine's regions.
+        InputError: no query, Gaussians of another number than the engine's regions, or a file
+            that cannot be written (the message names it and the system's reason).
     """
     out = Path(out)
     if not texts:
@@ -202,17 +205,25 @@ def write_query_selections(
     selections = engine.select(list(texts))
     written: list[Path] = []
     summary = []
-    for selection, name in zip(selections, unique_names(texts)):
-        entry = selection.to_json(engine.regions)
-        if not selection.empty:
-            path = out / f"{name}.ply"
-            write_selection_ply(path, gaussians, selection.gaussians)
-            written.append(path)
-            entry["ply"] = str(path)
-        summary.append(entry)
     path = out / "selections.json"
-    write_json(path, {"field": field_name, "mode": engine.config.mode, "queries": summary})
-    written.append(path)
+    try:
+        for selection, name in zip(selections, unique_names(texts, taken)):
+            entry = selection.to_json(engine.regions)
+            if not selection.empty:
+                path = out / f"{name}.ply"
+                write_selection_ply(path, gaussians, selection.gaussians)
+                written.append(path)
+                entry["ply"] = str(path)
+            summary.append(entry)
+        path = out / "selections.json"
+        write_json(path, {"field": field_name, "mode": engine.config.mode, "queries": summary})
+        written.append(path)
+    except BaseException as error:
+        for done in written:
+            done.unlink(missing_ok=True)
+        if isinstance(error, OSError):
+            raise InputError(path, f"cannot be written: {error.strerror or error}") from error
+        raise
     return tuple(selections), written
 
 

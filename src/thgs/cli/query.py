@@ -297,19 +297,26 @@ def export(
     config = _query_config(mode, level, top, threshold, min_gaussians) if query else None
     semantic, loaded = open_field_scene(field, scene)
     written: list[Path] = []
-    if query:
-        fq = _field_query(field, semantic, text_model, config)
-        selections, paths = write_query_selections(
-            out, fq, query, loaded.gaussians, field_name=str(field)
-        )
-        stdout.print(_selection_table(f"thgs export {field} ({config.mode})", semantic, selections))
-        written += paths
-    if color_level is not None:
-        path = out / f"regions-{LEVEL_NAMES[color_level]}.ply"
-        write_region_ply(path, loaded.gaussians, semantic, color_level, seed=seed)
-        written.append(path)
-    if labels:
-        for path in (out / "labels.npy", out / "labels.json"):
-            write_labels(path, semantic)
+    regions = [f"regions-{name}" for name in LEVEL_NAMES]  # never a query's name
+    try:
+        if query:
+            fq = _field_query(field, semantic, text_model, config)
+            selections, paths = write_query_selections(
+                out, fq, query, loaded.gaussians, field_name=str(field), taken=regions
+            )
+            written += paths
+        if color_level is not None:
+            path = out / f"{regions[color_level]}.ply"
+            write_region_ply(path, loaded.gaussians, semantic, color_level, seed=seed)
             written.append(path)
+        if labels:
+            for path in (out / "labels.npy", out / "labels.json"):
+                write_labels(path, semantic)
+                written.append(path)
+    except BaseException:
+        for path in written:  # the whole set or none of it
+            path.unlink(missing_ok=True)
+        raise
+    if query:
+        stdout.print(_selection_table(f"thgs export {field} ({config.mode})", semantic, selections))
     stdout.print(f"wrote {len(written)} files to {out}/: " + ", ".join(p.name for p in written))
