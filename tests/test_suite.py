@@ -7,6 +7,7 @@ complete; preprocessing of a scene without language features writes only into th
 from __future__ import annotations
 
 import json
+import logging
 import os
 import shutil
 from pathlib import Path
@@ -445,3 +446,29 @@ def test_a_bare_ray_flag_means_a_local_ray():
     ]
     assert bare_ray_flag(["suite", "R", "--ray", "h:1"]) == ["suite", "R", "--ray", "h:1"]
     assert bare_ray_flag(["build", "--ray"]) == ["build", "--ray"]
+
+
+def test_what_the_walk_cannot_use_is_named(second_dataset, tmp_path, caplog, capsys):
+    """A link to itself under the root is left out with a warning, LERF-OVS labels whose scene
+    folder is a file are warned of (the mean covers one scene fewer), a root that is a file or
+    the output folder itself is an error naming it."""
+    root = tmp_path / "root"
+    (root / "output").mkdir(parents=True)
+    (root / "output" / "loop").symlink_to(root / "output" / "loop")
+    (root / "lerf_ovs" / "label" / "kitchen").mkdir(parents=True)
+    (root / "lerf_ovs" / "label" / "kitchen" / "frame_00001.json").write_text("{}")
+    (root / "lerf_ovs" / "kitchen").write_text("not a scene")
+    (root / "synthetic").mkdir()
+    (root / "synthetic" / "kitchen").symlink_to(second_dataset, target_is_directory=True)
+    with caplog.at_level(logging.WARNING, logger="thgs.suite.discover"):
+        (scene,) = find_suite(root)
+    assert scene.key == "synthetic/kitchen"
+    assert f"{root / 'output' / 'loop'}: not searched for scenes" in caplog.text
+    assert (
+        f"{root / 'lerf_ovs' / 'label' / 'kitchen'} has LERF-OVS labels but its scene folder "
+        f"{root / 'lerf_ovs' / 'kitchen'} is not a folder: not run" in caplog.text
+    )
+    code, _, err = run(["suite", str(root / "lerf_ovs" / "kitchen"), "-o", "x"], capsys)
+    assert code == 2 and "is a file; the suite root is the folder" in " ".join(err.split())
+    code, _, err = run(["suite", str(root), "-o", str(root)], capsys)
+    assert code == 2 and "is also the output folder (-o)" in " ".join(err.split())

@@ -171,6 +171,28 @@ def _benchmark(folder: Path) -> str | None:
     return None
 
 
+def _warn_unmatched_labels(folder: Path) -> None:
+    """Warn of every LERF-OVS ``folder/label/<scene>/frame_*.json`` set whose scene folder
+    ``folder/<scene>`` is missing or not a folder: it is not run, so the benchmark's mean covers
+    one scene fewer."""
+    labels = folder / "label"
+    try:
+        sets = sorted(entry for entry in labels.iterdir() if entry.is_dir())
+    except OSError:
+        return
+    for found in sets:
+        scene = folder / found.name
+        if any(found.glob("frame_*.json")) and not scene.is_dir():
+            state = "is not a folder" if scene.exists() or scene.is_symlink() else "is missing"
+            logger.warning(
+                "%s has LERF-OVS labels but its scene folder %s %s: not run, so the mean "
+                "covers one scene fewer",
+                found,
+                scene,
+                state,
+            )
+
+
 def _walk(root: Path, skip: Path | None) -> tuple[list[tuple[str, Path]], list[Path]]:
     """The scene folders ``(benchmark, folder)`` and the model folders (with ``cfg_args``)
     under ``root``, sorted by path."""
@@ -180,7 +202,11 @@ def _walk(root: Path, skip: Path | None) -> tuple[list[tuple[str, Path]], list[P
     stack = [(root, 0)]
     while stack:
         folder, depth = stack.pop()
-        resolved = folder.resolve()
+        try:
+            resolved = folder.resolve()
+        except (OSError, RuntimeError) as error:  # a symbolic link loop
+            logger.warning("%s: not searched for scenes (%s)", folder, error)
+            continue
         if resolved in seen or (skip is not None and resolved == skip):
             continue
         seen.add(resolved)
@@ -197,11 +223,18 @@ def _walk(root: Path, skip: Path | None) -> tuple[list[tuple[str, Path]], list[P
         except OSError as error:
             logger.warning("%s: not searched for scenes (%s)", folder, error.strerror or error)
             continue
+        _warn_unmatched_labels(folder)
         for child in reversed(children):
             name = child.name
-            if name.startswith(".") or name in _NOT_SCENES or not child.is_dir():
+            if name.startswith(".") or name in _NOT_SCENES:
                 continue
-            stack.append((folder / name, depth + 1))
+            try:
+                is_folder = child.is_dir()
+            except OSError as error:  # e.g. a link to itself
+                logger.warning("%s: not searched for scenes (%s)", child.path, error.strerror)
+                continue
+            if is_folder:
+                stack.append((folder / name, depth + 1))
     return sorted(scenes, key=lambda item: str(item[1])), sorted(models, key=str)
 
 
@@ -343,13 +376,19 @@ def find_suite(
         the scenes, each with its ``problems`` (empty when it can run).
 
     Raises:
-        InputError: ``root`` is not a folder or holds no recognisable scene (naming the
-            layouts looked for), two scenes have the same ``benchmark/scene`` key, or a
+        InputError: ``root`` is not a folder, is ``skip``, or holds no recognisable scene
+            (naming the layouts looked for), two scenes have the same ``benchmark/scene`` key, or a
             ``select`` name matches nothing (listing what exists).
     """
     root = Path(root)
+    if root.exists() and not root.is_dir():
+        raise InputError(root, "is a file; the suite root is the folder holding the benchmarks")
     if not root.is_dir():
         raise InputError(root, "suite root folder not found")
+    if skip is not None and root.resolve() == Path(skip).resolve():
+        raise InputError(
+            root, "is also the output folder (-o): write the results to another folder"
+        )
     folders, models = _walk(root, None if skip is None else Path(skip).resolve())
     if not folders:
         raise InputError(
