@@ -140,6 +140,18 @@ def test_distortion_the_readers_refuse(tmp_path):
         read_transforms_json(path)
 
 
+@pytest.mark.parametrize("k1", [50.0, -5.0, -0.9])
+def test_a_lens_that_cannot_be_undone_over_its_image_is_refused(tmp_path, k1):
+    """k1 = 50 (OpenCV's inversion diverges), −5 and −0.9 (the radius folds back inside the
+    frame): refused naming the file and the camera, where they were read as 57 objects."""
+    path = tmp_path / "transforms.json"
+    frames = [{"file_path": "images/a.jpg", "transform_matrix": FOX_FRAME}]
+    path.write_text(json.dumps({**FOX, "k1": k1, "frames": frames}))
+    with pytest.raises(InputError, match=r"cannot be undone over the 1080×1920 image") as info:
+        read_transforms_json(path)
+    assert str(info.value).startswith(f"{path}, camera images/a.jpg: lens distortion")
+
+
 def test_writers_refuse_distorted_cameras(tmp_path):
     cameras = read_transforms_json(write_fox(tmp_path))
     for write, name in [

@@ -113,6 +113,7 @@ class Cameras:
         widths: Sequence[int],
         heights: Sequence[int],
         names: Sequence[str],
+        source: str = "cameras",
     ) -> Cameras:
         """The pinhole cameras of image files taken through distorting lenses.
 
@@ -122,6 +123,7 @@ class Cameras:
             coeffs: M [8] OpenCV coefficients ``(k1, k2, p1, p2, k3, k4, k5, k6)``.
             widths, heights: the image files' sizes.
             names: image names.
+            source: the file they come from, for errors.
 
         Returns:
             Cameras whose K and size are :func:`thgs.scene.distortion.pinhole_camera`'s, with
@@ -136,16 +138,23 @@ class Cameras:
             torch.tensor(widths, dtype=torch.int64),
             torch.tensor(heights, dtype=torch.int64),
         )
-        return cls._undistorted(torch.tensor(np.stack(viewmats)), distortion, tuple(names))
+        return cls._undistorted(torch.tensor(np.stack(viewmats)), distortion, tuple(names), source)
 
     @classmethod
-    def _undistorted(cls, viewmats: Tensor, distortion: Distortion, names: tuple[str, ...]):
+    def _undistorted(
+        cls,
+        viewmats: Tensor,
+        distortion: Distortion,
+        names: tuple[str, ...],
+        source: str = "cameras",
+    ):
         pinholes = [
             pinhole_camera(
                 distortion.Ks[i].numpy(),
                 distortion.coeffs[i].numpy(),
                 int(distortion.widths[i]),
                 int(distortion.heights[i]),
+                source=f"{source}, camera {names[i]}",
             )
             for i in range(len(distortion))
         ]

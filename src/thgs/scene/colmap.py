@@ -193,7 +193,7 @@ def read_colmap(
             sparse_dir,
             "/".join(distorted),
         )
-    cameras = Cameras.from_distorted(viewmats, Ks, coeffs, widths, heights, names)
+    cameras = Cameras.from_distorted(viewmats, Ks, coeffs, widths, heights, names, str(sparse_dir))
     cameras = cameras.check(source=str(sparse_dir))
     if images_dir is not None:
         return fit_to_images(cameras, images_dir, scale=scale)

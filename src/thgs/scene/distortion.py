@@ -126,8 +126,33 @@ def _to_opencv(K: np.ndarray) -> np.ndarray:
     return K
 
 
+_ROUND_TRIP_PIXELS = 0.5
+"""How far, in pixels, a border point of the image may land after undistorting it and
+distorting it back before the lens model is refused as not invertible over the image."""
+
+
+def _round_trip_error(K: np.ndarray, coeffs: np.ndarray, width: int, height: int) -> float:
+    """The largest distance, in pixels, between points along the image's border and across it
+    and the same points undistorted by OpenCV (its iterative inversion) and distorted back.
+
+    A lens model that folds over itself inside the image (a radius reached twice), or one
+    OpenCV's iteration cannot invert there (a very strong ``k1``), has no pinhole image: its
+    points do not come back."""
+    cv2 = _cv2()
+    xs = np.linspace(0.0, width - 1.0, 33)
+    ys = np.linspace(0.0, height - 1.0, 25)
+    grid = np.stack(np.meshgrid(xs, ys), axis=-1).reshape(-1, 2)
+    K_cv = _to_opencv(K)
+    normalised = cv2.undistortPoints(grid[:, None, :], K_cv, coeffs).reshape(-1, 2)
+    if not np.isfinite(normalised).all():
+        return float("inf")
+    rays = np.concatenate([normalised, np.ones((len(normalised), 1))], axis=1)
+    back, _ = cv2.projectPoints(rays, np.zeros(3), np.zeros(3), K_cv, coeffs)
+    return float(np.max(np.linalg.norm(back.reshape(-1, 2) - grid, axis=1)))
+
+
 def pinhole_camera(
-    K: np.ndarray, coeffs: np.ndarray, width: int, height: int
+    K: np.ndarray, coeffs: np.ndarray, width: int, height: int, source: str = "distortion"
 ) -> tuple[np.ndarray, int, int]:
     """The pinhole camera an image of a distorted camera is undistorted into.
 
@@ -139,24 +164,37 @@ def pinhole_camera(
         K: [3, 3] intrinsics of the image file, pixels (thgs's convention).
         coeffs: [8] OpenCV coefficients (:data:`COEFFICIENTS`).
         width, height: the image file's size in pixels.
+        source: the camera's file and name, for errors.
 
     Returns:
         ``(K_pinhole, width_pinhole, height_pinhole)``: [3, 3] float64 intrinsics in thgs's
         convention and the undistorted image size. A camera without distortion is returned as it is.
 
     Raises:
-        InputError: the distortion is so strong that no valid rectangle remains.
+        InputError: the distortion cannot be undone over the image (points across it do not
+            come back within half a pixel when undistorted and distorted again: the model folds
+            over itself or OpenCV's inversion diverges), or is so strong that no valid rectangle
+            remains.
     """
     coeffs = np.asarray(coeffs, dtype=np.float64)
     if not coeffs.any():
         return np.array(K, dtype=np.float64), int(width), int(height)
     cv2 = _cv2()
+    error = _round_trip_error(np.asarray(K, dtype=np.float64), coeffs, int(width), int(height))
+    if not error <= _ROUND_TRIP_PIXELS:
+        raise InputError(
+            source,
+            f"lens distortion {dict(zip(COEFFICIENTS, coeffs.tolist()))} cannot be undone over "
+            f"the {width}×{height} image: points across it come back {error:.3g} px away when "
+            "undistorted and distorted again (the model folds over itself, or is beyond what "
+            "its calibration can mean); check the coefficients",
+        )
     new_K, (x, y, roi_w, roi_h) = cv2.getOptimalNewCameraMatrix(
         _to_opencv(K), coeffs, (int(width), int(height)), 0
     )
     if roi_w < 2 or roi_h < 2:
         raise InputError(
-            "distortion",
+            source,
             f"coefficients {coeffs.tolist()} leave no valid undistorted image of a "
             f"{width}×{height} camera",
         )

@@ -241,7 +241,7 @@ def read_transforms_json(
         )
     if any(row.any() for row in coeffs):
         logger.info("%s: cameras with lens distortion; masks are undistorted into pinholes", path)
-    cameras = Cameras.from_distorted(viewmats, Ks, coeffs, widths, heights, names)
+    cameras = Cameras.from_distorted(viewmats, Ks, coeffs, widths, heights, names, str(path))
     return cameras.check(source=str(path))
 
 
