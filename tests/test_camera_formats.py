@@ -383,7 +383,7 @@ def transforms(**changes):
         ('{"frames": []}', "non-empty 'frames'"),
         (transforms(k4=0.05), "k4 = 0.05 on a perspective camera"),
         (transforms(camera_model="OPENCV_FISHEYE"), "'OPENCV_FISHEYE' is not a perspective"),
-        (transforms(is_fisheye=True), "'fisheye' is not a perspective"),
+        (transforms(is_fisheye=True), "is_fisheye is true: fisheye lenses are not read"),
         (
             transforms(
                 frame={"transform_matrix": [[2, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}

@@ -132,11 +132,25 @@ def test_distortion_the_readers_refuse(tmp_path):
             {
                 **FOX,
                 "is_fisheye": True,
+                "camera_model": "PINHOLE",
                 "frames": [{"file_path": "a.jpg", "transform_matrix": FOX_FRAME}],
             }
         )
     )
-    with pytest.raises(InputError, match="not a perspective model"):
+    with pytest.raises(
+        InputError, match=r"is_fisheye is true \(camera_model 'PINHOLE' says otherwise\)"
+    ):
+        read_transforms_json(path)
+    path.write_text(
+        json.dumps(
+            {
+                **FOX,
+                "camera_model": "OPENCV_FISHEYE",
+                "frames": json.loads(path.read_text())["frames"],
+            }
+        )
+    )
+    with pytest.raises(InputError, match="'OPENCV_FISHEYE' is not a perspective model"):
         read_transforms_json(path)
 
 

@@ -98,10 +98,17 @@ def _not_finite(matrix: Any) -> bool:
 
 def _coefficients(values: dict[str, Any], path: Path, where: str) -> np.ndarray:
     model = values.get("camera_model")
-    if values.get("is_fisheye") or (model is not None and model not in _PERSPECTIVE_MODELS):
+    if values.get("is_fisheye"):
+        also = f" (camera_model {model!r} says otherwise)" if model is not None else ""
         raise InputError(
             path,
-            f"{where}: camera_model {model or 'fisheye'!r} is not a perspective model; thgs reads "
+            f"{where}: is_fisheye is true{also}: fisheye lenses are not read; undistort the "
+            "images to pinhole ones first (e.g. colmap image_undistorter) and drop is_fisheye",
+        )
+    if model is not None and model not in _PERSPECTIVE_MODELS:
+        raise InputError(
+            path,
+            f"{where}: camera_model {model!r} is not a perspective model; thgs reads "
             f"{', '.join(_PERSPECTIVE_MODELS)} (with k1 k2 k3 p1 p2): undistort the images to "
             "pinhole ones first (e.g. colmap image_undistorter)",
         )
