@@ -160,6 +160,38 @@ def _moved(cameras, rotation, scale, shift):
     return type(cameras)(viewmats, cameras.Ks, cameras.widths, cameras.heights, cameras.names)
 
 
+@pytest.mark.parametrize("second", ["sparse", "root"])
+def test_two_colmap_models_in_one_folder_must_agree(tmp_path, second):
+    """sparse/0 and sparse/ (or the folder itself): read from the first when they describe the
+    same cameras, refused naming both and --source when they do not."""
+    cameras = random_cameras(5, centred=True)
+    data = tmp_path / "data"
+    first, other = data / "sparse" / "0", data / "sparse" if second == "sparse" else data
+    write_colmap(first, cameras)
+    write_colmap(other, cameras)
+    _, path, found = load_cameras(data)
+    expected = other if second == "root" else first  # the folder itself is read first
+    unused = first if second == "root" else other
+    assert path == expected and f"{unused} describes the same cameras as {expected}" in found[0]
+    moved = cameras.viewmats.clone()
+    moved[0, :3, 3] += 0.5
+    write_colmap(
+        unused, type(cameras)(moved, cameras.Ks, cameras.widths, cameras.heights, cameras.names)
+    )
+    with pytest.raises(InputError, match="different camera positions") as error:
+        load_cameras(data)
+    message = str(error.value)
+    assert message.startswith(f"{data}: holds two COLMAP models, {expected} and {unused}")
+    assert f"--source {expected}" in message and f"--source {unused}" in message
+
+
+def test_images_do_not_apply_to_a_transforms_json(tmp_path):
+    cameras = random_cameras(3, centred=True)
+    write_transforms_json(tmp_path / "transforms.json", cameras)
+    with pytest.raises(InputError, match=r"images='nope' \(--images\) does not apply"):
+        load_cameras(tmp_path, images="nope")
+
+
 def test_colmap_and_transforms_json_in_one_folder_must_agree(tmp_path):
     from scipy.spatial.transform import Rotation
 

@@ -77,7 +77,9 @@ def test_check_counts_what_the_process_holds(tmp_path):
     enough = fake_proc(tmp_path / "a", 1000, resident_kib=held // 1024)  # 1.02 MB left
     check_build_memory(1000, 10, 100, 50, None, 2, proc=enough, cgroup_root=tmp_path / "none")
     short = fake_proc(tmp_path / "b", 900, resident_kib=held // 1024)  # 0.92 MB left
-    with pytest.raises(ThgsError, match=r"1,000 Gaussians and 10 views of 100×50 needs .*proc/meminfo"):
+    with pytest.raises(
+        ThgsError, match=r"1,000 Gaussians and 10 views of 100×50 needs .*proc/meminfo"
+    ):
         check_build_memory(1000, 10, 100, 50, None, 2, proc=short, cgroup_root=tmp_path / "none")
 
 

@@ -142,6 +142,9 @@ def load_cameras(
     image_root: Path | None = None
     if camera_path.is_dir():
         cameras = read_colmap(camera_path)
+        for other in _colmap_models(source):
+            if other != camera_path:
+                found.append(_check_models_agree(cameras, camera_path, other, source))
         if source.is_dir() and (source / "transforms.json").is_file():
             found.append(
                 _check_agreement(
@@ -157,6 +160,12 @@ def load_cameras(
         image_root = source / (images or "images")
     else:
         document = load_json(camera_path)
+        if images is not None and isinstance(document, dict) and "frames" in document:
+            raise InputError(
+                camera_path,
+                f"names every image's path itself (file_path), so images={images!r} "
+                "(--images) does not apply; leave it out",
+            )
         if isinstance(document, list):
             cameras = read_cameras_json(camera_path)
             found.append(f"3DGS cameras.json {camera_path} ({len(cameras)} cameras)")
@@ -302,10 +311,36 @@ def _read_train_split(
     return cameras
 
 
+def _colmap_models(folder: Path) -> list[Path]:
+    """The COLMAP models of a folder, in the order they are read: itself, sparse/0, sparse."""
+    return [
+        candidate
+        for candidate in (folder, folder / "sparse" / "0", folder / "sparse")
+        if (candidate / "cameras.bin").is_file() or (candidate / "cameras.txt").is_file()
+    ]
+
+
+def _check_models_agree(cameras: Cameras, read: Path, other: Path, folder: Path) -> str:
+    """A folder with two COLMAP models is read from the first only when the second describes
+    the same cameras (:func:`camera_disagreement`); returns the line for ``found``.
+
+    Raises:
+        InputError: they disagree, naming both and ``--source``, which decides.
+    """
+    problem = camera_disagreement(cameras, read_colmap(other))
+    if problem is not None:
+        raise InputError(
+            folder,
+            f"holds two COLMAP models, {read} and {other}, and they disagree: {problem}; "
+            f"choose one with --source {read} or --source {other}",
+        )
+    return f"{other} describes the same cameras as {read}; reading {read}"
+
+
 def _find_cameras(folder: Path) -> Path:
-    for candidate in (folder, folder / "sparse" / "0", folder / "sparse"):
-        if (candidate / "cameras.bin").is_file() or (candidate / "cameras.txt").is_file():
-            return candidate
+    models = _colmap_models(folder)
+    if models:
+        return models[0]
     for candidate in (folder / _TRAIN_SPLIT, folder / "transforms.json", folder / "cameras.json"):
         if candidate.is_file():
             return candidate
