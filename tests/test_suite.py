@@ -445,7 +445,8 @@ def test_a_bare_ray_flag_means_a_local_ray():
         *("suite", "R", "--ray", "local", "-o", "O")
     ]
     assert bare_ray_flag(["suite", "R", "--ray", "h:1"]) == ["suite", "R", "--ray", "h:1"]
-    assert bare_ray_flag(["build", "--ray"]) == ["build", "--ray"]
+    assert bare_ray_flag(["build", "S", "--ray"]) == ["build", "S", "--ray", "local"]
+    assert bare_ray_flag(["query", "--ray"]) == ["query", "--ray"]
 
 
 def test_what_the_walk_cannot_use_is_named(second_dataset, tmp_path, caplog, capsys):
