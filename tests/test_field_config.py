@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import logging
 import os
 import shutil
 import typing
@@ -103,6 +104,10 @@ def test_set_takes_plain_text_for_choices():
         ("merge.thresholds=[0.5, 0.4]", "must hold 3 values, got 2"),
         ("features.mode=median", "must be one of ['shares', 'centres'], got 'median'"),
         ("repeats.enabled=1", "must be true or false, got 1"),
+        ("superpoints.graph.k=1000000000000", "k: must be from 1 to 1,000 neighbours"),
+        ("superpoints.lift.code_dim=100000000", "code_dim: must be from 2 to 1,024"),
+        ("superpoints.lift.raster.tile_size=100000", "tile_size from 1 to 256"),
+        ("superpoints.partition.regularization=1e30", "regularization must be from 0 to 100"),
     ],
 )
 def test_bad_settings_name_the_key(assignment, message):
@@ -123,6 +128,44 @@ def test_a_missing_setting_takes_the_default():
     document = FieldConfig().to_json()
     del document["merge"]["rounds"]
     assert FieldConfig.from_json(document) == FieldConfig()
+
+
+def test_a_config_file_names_what_it_leaves_to_the_defaults(tmp_path, caplog):
+    document = FieldConfig().to_json()
+    del document["merge"], document["superpoints"]["partition"]["block_size"]
+    path = tmp_path / "partial.json"
+    path.write_text(json.dumps(document))
+    with caplog.at_level(logging.WARNING, logger="thgs.pipeline"):
+        assert read_field_config(path) == FieldConfig()
+    assert (
+        f"{path} does not set superpoints.partition.block_size, merge: thgs's defaults are used"
+        in caplog.text
+    )
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("[" * 100_000 + "]" * 100_000, "nested too deeply to read"),
+        ('{"merge": {"rounds": ' + "9" * 5000 + "}}", "Exceeds the limit"),
+    ],
+)
+def test_config_files_json_cannot_hold_are_named(tmp_path, text, message):
+    path = tmp_path / "config.json"
+    path.write_text(text)
+    with pytest.raises(InputError, match=rf"{path}: not valid JSON \(.*{message}"):
+        read_field_config(path)
+
+
+def test_out_of_memory_is_one_line_not_a_traceback(small_dataset, tmp_path, capsys, monkeypatch):
+    def too_much(*args, **kwargs):
+        raise MemoryError("Unable to allocate 99.1 GiB")
+
+    monkeypatch.setattr("thgs.pipeline.build_field", too_much)
+    out = tmp_path / "x.thgs"
+    code, _, err = run(["build", str(small_dataset), "-o", str(out)], capsys)
+    assert code == 2 and "out of memory (Unable to allocate 99.1 GiB)" in err
+    assert "Traceback" not in err and not out.exists()
 
 
 def test_field_rebuilds_from_its_record_to_the_same_bytes(

@@ -33,8 +33,10 @@ def load_json(path: str | os.PathLike[str]) -> Any:
         raise InputError(path, "the file is empty")
     try:
         return json.loads(text)
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+    except (ValueError, UnicodeDecodeError) as exc:  # JSONDecodeError, a 5000-digit integer
         raise InputError(path, f"not valid JSON ({exc})") from exc
+    except RecursionError as exc:
+        raise InputError(path, "not valid JSON (nested too deeply to read)") from exc
 
 
 def get_number(entry: dict[str, Any], key: str, path: Path, where: str) -> float:

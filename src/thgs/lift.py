@@ -57,7 +57,7 @@ class LiftConfig:
             blending weight of each Gaussian is summed per mask, and it takes the mask holding
             the largest share of its total weight (pixels without a mask count in the total) if
             that share exceeds ``share_threshold``. No projection noise, no limit on masks.
-        code_dim: D of the latent codes (reference 20).
+        code_dim: D of the latent codes (reference 20; from 2 to 1,024).
         cosine_threshold: τ of the latent method (reference 0.85; 0.5 for reweighting on 3DOVS).
         background_scale: length of the background code in the splatted map (reference
             ``zero_scale`` 0.2 on LERF): smaller lets a Gaussian that sees some background keep
@@ -75,13 +75,18 @@ class LiftConfig:
     seed: int = 0
     raster: RasterConfig = field(default_factory=RasterConfig)
 
+    def __post_init__(self) -> None:
+        self.check()
+
     def check(self) -> LiftConfig:
         if self.method not in ("latent", "exact"):
             raise InputError(
                 "LiftConfig.method", f"must be 'latent' or 'exact', got {self.method!r}"
             )
-        if self.code_dim < 2:
-            raise InputError("LiftConfig.code_dim", "must be at least 2")
+        if not 2 <= self.code_dim <= 1024:
+            raise InputError(
+                "LiftConfig.code_dim", f"must be from 2 to 1,024, got {self.code_dim:,}"
+            )
         if not 0.0 <= self.share_threshold < 1.0:
             raise InputError("LiftConfig.share_threshold", "must be in [0, 1)")
         return self

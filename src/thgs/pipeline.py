@@ -582,8 +582,28 @@ def read_field_config(path: str | os.PathLike[str]) -> FieldConfig:
     """
     path = Path(path)
     if path.suffix.lower() == ".json":
-        return FieldConfig.from_json(load_json(path), str(path))
+        document = load_json(path)
+        config = FieldConfig.from_json(document, str(path))
+        missing = _missing_settings(document, config.to_json())
+        if missing:
+            shown = ", ".join(missing[:8]) + (
+                f" and {len(missing) - 8} more" if len(missing) > 8 else ""
+            )
+            logger.warning("%s does not set %s: thgs's defaults are used there", path, shown)
+        return config
     return recorded_config(load_field(path), str(path))
+
+
+def _missing_settings(document: Any, complete: dict[str, Any], prefix: str = "") -> list[str]:
+    """The dotted names of ``complete``'s settings that ``document`` lacks (a whole section
+    named once)."""
+    missing: list[str] = []
+    for key, value in complete.items():
+        if not isinstance(document, dict) or key not in document:
+            missing.append(prefix + key)
+        elif isinstance(value, dict):
+            missing += _missing_settings(document[key], value, f"{prefix}{key}.")
+    return missing
 
 
 def lifted_raster(field: SemanticField, source: str = "field") -> RasterConfig:

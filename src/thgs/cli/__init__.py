@@ -65,6 +65,13 @@ def entrypoint(argv: list[str] | None = None) -> None:
     except ThgsError as exc:
         error(str(exc))
         sys.exit(2)
+    except MemoryError as exc:
+        what = f" ({exc})" if str(exc) else ""
+        error(
+            f"out of memory{what}: a setting asks for more than this machine holds (a --set or "
+            "--config value far from its default?), or the scene is too large for it"
+        )
+        sys.exit(2)
     except KeyboardInterrupt:
         # every output is written to a temporary name and renamed when whole (thgs._atomic),
         # so an interrupted command leaves nothing half-written behind

@@ -28,13 +28,18 @@ __all__ = ["GraphConfig", "KnnGraph", "knn_graph", "nearest_neighbors", "search_
 log = logging.getLogger(__name__)
 
 
+MAX_NEIGHBOURS = 1000
+"""The most neighbours per Gaussian a graph may have (the reference uses 10)."""
+
+
 @dataclass(frozen=True)
 class GraphConfig:
     """How the KNN graph is built. Defaults are the reference's.
 
     Attributes:
-        k: neighbours per Gaussian, itself excluded (10). With fewer than ``k + 1`` Gaussians every
-            Gaussian gets all the others, and the remaining slots are marked missing.
+        k: neighbours per Gaussian, itself excluded (10; at most 1,000: the graph holds N × k
+            edges). With fewer than ``k + 1`` Gaussians every Gaussian gets all the others, and
+            the remaining slots are marked missing.
         color_weight: factor on the RGB colour (in [0, 1]) in the search space (0.3); 0 searches
             by position only. Unit: scene units per unit of colour.
         radius: neighbours at a **Euclidean** 6-D distance of ``radius`` or more are dropped (2.0,
@@ -49,8 +54,10 @@ class GraphConfig:
     radius: float = 2.0
 
     def __post_init__(self) -> None:
-        if self.k < 1:
-            raise InputError("GraphConfig", f"k must be at least 1, got {self.k}")
+        if not 1 <= self.k <= MAX_NEIGHBOURS:
+            raise InputError(
+                "GraphConfig.k", f"must be from 1 to {MAX_NEIGHBOURS:,} neighbours, got {self.k:,}"
+            )
         if not self.color_weight >= 0:
             raise InputError("GraphConfig", f"color_weight must be ≥ 0, got {self.color_weight}")
         if not self.radius > 0:

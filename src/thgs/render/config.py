@@ -31,7 +31,7 @@ class RasterConfig:
         filter_inv_square: 2DGS low-pass, ``ρ2d = filter_inv_square · |x − c|²`` in pixels (2.0:
             a 2D Gaussian of standard deviation 1/√2 px around the filter centre).
         tile_size: tile edge in pixels for binning Gaussians (numba and torch backends; gsplat
-            uses its own 16).
+            uses its own 16); from 1 to 256.
         backend: who rasterizes (:mod:`thgs.render.backends`): ``"numba"`` (CPU, float64),
             ``"torch"`` (vectorized PyTorch on any device), ``"gsplat"`` (fused CUDA kernels;
             its α cap, α minimum, stop rule and 2DGS filter are fixed at 0.999, 1/255, 1e-4
@@ -66,8 +66,10 @@ class RasterConfig:
             raise InputError(
                 "RasterConfig", f"transmittance_min {self.transmittance_min} not in [0, 1)"
             )
-        if self.eps2d < 0 or self.filter_inv_square <= 0 or self.tile_size < 1:
-            raise InputError("RasterConfig", "need eps2d ≥ 0, filter_inv_square > 0, tile_size ≥ 1")
+        if self.eps2d < 0 or self.filter_inv_square <= 0 or not 1 <= self.tile_size <= 256:
+            raise InputError(
+                "RasterConfig", "need eps2d ≥ 0, filter_inv_square > 0, tile_size from 1 to 256"
+            )
         if self.backend not in ("auto", "numba", "torch", "gsplat"):
             raise InputError(
                 "RasterConfig",
