@@ -85,9 +85,10 @@ def test_scene_and_cameras_load_back_from_every_format(dataset, scene):
     assert reference.stems == scene.cameras.stems
     torch.testing.assert_close(reference.viewmats, scene.cameras.viewmats, rtol=0, atol=1e-9)
     for source in (dataset / "sparse" / "0", dataset / "transforms.json"):
-        cameras, _, _ = load_cameras(source if source.suffix else dataset, images="images")
-        if source.suffix:
-            cameras, _, _ = load_cameras(source)
+        # transforms.json names its images itself: images= applies to the COLMAP folder only
+        cameras, _, _ = (
+            load_cameras(source) if source.suffix else load_cameras(dataset, images="images")
+        )
         assert cameras.stems == scene.cameras.stems
         torch.testing.assert_close(cameras.viewmats, scene.cameras.viewmats, rtol=0, atol=1e-9)
         torch.testing.assert_close(cameras.Ks, scene.cameras.Ks, rtol=0, atol=1e-9)
