@@ -210,6 +210,21 @@ def test_resume_skips_what_is_current(in_process, suite_root, capsys):
     changed = SuiteConfig(device="cpu", settings=("merge.min_region_gaussians=30",))
     assert [p.action for p in plan_scene(scene, out, changed)][1:] == ["run", "run"]
 
+    # a field damaged after its stamp was written is built again, not trusted
+    field = out / "lerf_ovs" / "ramen" / "field.thgs"
+    whole = field.read_bytes()
+    field.write_bytes(whole[: len(whole) // 2])
+    plans = plan_scene(scene, out, SuiteConfig(device="cpu"))
+    assert (plans[1].action, plans[1].reason) == (
+        "run",
+        "its output changed since it was written (damaged?)",
+    )
+    code, _, err = run(["suite", str(suite_root), "-o", str(out), "--device", "cpu"], capsys)
+    assert code == 0, err
+    stages = json.loads((out / "report.json").read_text())["run"]["stages"]["lerf_ovs/ramen"]
+    assert (stages["build"], stages["eval"]) == ("ran", "ran")
+    assert field.read_bytes() == whole and _comparable(out / "report.json") == before
+
 
 def test_dry_run_prints_the_plan_and_writes_nothing(in_process, suite_root, tmp_path, capsys):
     out, _ = in_process

@@ -7,11 +7,14 @@ Outputs of scene ``<benchmark>/<scene>`` go to ``OUT/<benchmark>/<scene>/``:
 - ``field.thgs`` — the semantic field (:func:`thgs.pipeline.build_field`);
 - ``eval.json``, ``eval.md`` — the scene's evaluation (:func:`thgs.eval.evaluate_dataset`);
 - ``stages.json`` — one stamp per finished stage: a digest of the stage's inputs (settings, and
-  the size and modification time of every input file) and its recorded times;
+  the size and modification time of every input file), the size and modification time of its
+  outputs, and its recorded times;
 - ``error.log`` — the traceback of the last failure, if the scene failed.
 
-A stage is **current** when its outputs exist, its stamp's digest equals its inputs' digest now,
-and no stage before it ran in this run; a current stage is skipped. So a changed field config
+A stage is **current** when its outputs exist as its stamp recorded them (a truncated or replaced
+``field.thgs`` is built again; stamps written before outputs were recorded are trusted), its
+stamp's digest equals its inputs' digest now, and no stage before it ran in this run; a current
+stage is skipped. So a changed field config
 reruns build and eval, a changed selection mode only eval, and a suite interrupted anywhere
 (every output is written atomically, the stamp after it) resumes where it stopped.
 
@@ -282,6 +285,15 @@ def _outputs_exist(folder: Path, scene: SuiteScene, stage: str) -> bool:
     return (folder / EVAL).is_file() and (folder / EVAL).with_suffix(".md").is_file()
 
 
+def _output_state(folder: Path, stage: str) -> list[list[Any]]:
+    """The size and modification time of the stage's outputs (:func:`_files_state`)."""
+    if stage == "preprocess":
+        return _files_state(folder, (GUIDANCE,))
+    if stage == "build":
+        return _files_state(folder, (FIELD,))
+    return _files_state(folder, (EVAL, Path(EVAL).with_suffix(".md").name))
+
+
 def _read_stamps(folder: Path) -> dict[str, Any]:
     path = folder / STAMPS
     if not path.is_file():
@@ -312,11 +324,14 @@ def _stage_plan(
         return StagePlan(stage, "run", "an earlier stage runs")
     if not _outputs_exist(folder, scene, stage):
         return StagePlan(stage, "run", "no output yet")
-    recorded = stamps.get(stage, {}).get("digest") if isinstance(stamps.get(stage), dict) else None
+    stamp = stamps.get(stage) if isinstance(stamps.get(stage), dict) else {}
+    recorded = stamp.get("digest")
     if recorded is None:
         return StagePlan(stage, "run", "output without a stamp (interrupted?)")
     if recorded != _digest(_inputs(scene, folder, config, stage)):
         return StagePlan(stage, "run", "its inputs or settings changed")
+    if "outputs" in stamp and stamp["outputs"] != _output_state(folder, stage):
+        return StagePlan(stage, "run", "its output changed since it was written (damaged?)")
     return StagePlan(stage, "current", "output current")
 
 
@@ -516,7 +531,9 @@ def run_scene(
                 extra = _evaluate(scene, folder, config)
             seconds = time.perf_counter() - started
             digest = _digest(_inputs(scene, folder, config, stage))
-            _write_stamp(folder, stage, {"digest": digest, "seconds": seconds, **extra})
+            outputs = _output_state(folder, stage)
+            stamp = {"digest": digest, "seconds": seconds, "outputs": outputs, **extra}
+            _write_stamp(folder, stage, stamp)
             stages[stage] = "ran"
         result = _recorded(scene, folder, stages, None)
     except Exception as error:  # any failure of one scene is reported; the others go on
@@ -641,7 +658,9 @@ def _preprocess_on_ray(scenes, out, config, ray, progress) -> dict[str, str | No
         extra = {"images": len(target.jobs)}
         if summary is not None:
             extra["masks"] = list(summary.masks)
-        _write_stamp(folder, "preprocess", {"digest": digest, "seconds": seconds, **extra})
+        outputs = _output_state(folder, "preprocess")
+        stamp = {"digest": digest, "seconds": seconds, "outputs": outputs, **extra}
+        _write_stamp(folder, "preprocess", stamp)
         outcome[scene.key] = None
     return outcome
 
