@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 
 import pytest
 import torch
@@ -190,3 +191,24 @@ def test_a_checkpoint_name_gsplat_does_not_write_needs_the_kind(tmp_path):
     (tmp_path / "empty" / "ckpts").mkdir(parents=True)
     with pytest.raises(InputError, match="not a gsplat result folder"):
         load_scene(tmp_path / "empty")
+
+
+class _Hostile:
+    """Unpickling this would run ``os.system``: what a checkpoint must never get to do."""
+
+    def __reduce__(self):
+        import os
+
+        return (os.system, ("touch pwned",))
+
+
+def test_a_checkpoint_holding_code_is_refused_without_torch_s_advice(tmp_path):
+    path = tmp_path / "ckpt_7_rank0.pt"
+    torch.save({"step": 7, "splats": {"means": _Hostile()}}, path)
+    with pytest.raises(InputError) as info:
+        read_gsplat_checkpoint(path)
+    message = str(info.value)
+    assert message.startswith(f"{path}: holds Python objects besides tensors (")
+    assert "os.system" in message or "posix.system" in message
+    assert "weights_only" not in message and "\x1b[" not in message
+    assert not (tmp_path / "pwned").exists() and not os.path.exists("pwned")

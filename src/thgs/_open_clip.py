@@ -24,6 +24,7 @@ from typing import Any
 
 import torch
 
+from thgs._torch_load import load_tensors
 from thgs.errors import InputError
 
 __all__ = [
@@ -171,14 +172,14 @@ def _read_weights(folder: Path) -> tuple[dict[str, torch.Tensor], Path]:
         path = folder / name
         if not path.is_file():
             continue
-        try:
-            if path.suffix == ".safetensors":
-                from safetensors.torch import load_file
+        if path.suffix == ".safetensors":
+            from safetensors.torch import load_file
 
+            try:
                 return load_file(str(path)), path
-            weights = torch.load(path, map_location="cpu", weights_only=True)
-        except Exception as error:  # safetensors and torch raise many kinds on damaged files
-            raise InputError(path, f"not a readable checkpoint ({error})") from error
+            except Exception as error:  # safetensors raises several kinds on damaged files
+                raise InputError(path, f"not a readable checkpoint ({error})") from error
+        weights = load_tensors(path, "checkpoint")
         if isinstance(weights, dict) and isinstance(weights.get("state_dict"), dict):
             weights = weights["state_dict"]
         if not isinstance(weights, dict):

@@ -40,6 +40,7 @@ from typing import Literal
 
 import torch
 
+from thgs._torch_load import load_tensors
 from thgs.errors import InputError
 from thgs.scene.gaussians import SH_C0, Gaussians, warn_if_invisible
 
@@ -108,12 +109,7 @@ def _rank_files(path: Path) -> list[Path]:
 def _load_splats(path: Path) -> dict[str, torch.Tensor]:
     if not path.is_file():
         raise InputError(path, "no such file")
-    try:
-        data = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as error:  # torch raises UnpicklingError, RuntimeError, EOFError …
-        raise InputError(
-            path, f"not a readable PyTorch checkpoint ({type(error).__name__}: {error})"
-        ) from error
+    data = load_tensors(path)
     splats = data.get("splats") if isinstance(data, dict) else None
     if not isinstance(splats, dict):
         raise InputError(
