@@ -113,6 +113,14 @@ def test_teatime_labels(shared_data):
         ({"info": {"width": 10, "height": 0}, "objects": []}, "not positive"),
         ({"info": {"width": 10, "height": 5}}, "no 'objects' list"),
         (
+            {
+                "info": {"width": 10, "height": 5},
+                "objects": [{"category": "cup", "segmentation": [[12, 1], [15, 1], [14, 4]]}],
+            },
+            r"object 0 \('cup'\): 'segmentation' lies wholly outside the 10×5 image \(x 12 "
+            r"to 15, y 1 to 4\), so its mask would be empty$",
+        ),
+        (
             {"info": {"width": 10, "height": 5}, "objects": [{"segmentation": []}]},
             "object 0 has no 'category'",
         ),

@@ -109,8 +109,8 @@ def read_lerf_labels(path: str | os.PathLike[str]) -> FrameLabels:
     Raises:
         InputError: unreadable JSON, missing ``info`` size or ``objects``, an object without a
             category or with an empty one, with a polygon that is not ≥ 3 finite 2-D [x, y]
-            points or a ``group`` that is not an integer (a missing or null ``group`` reads as
-            0, as ISAT does).
+            points or lies wholly outside the image, or a ``group`` that is not an integer (a
+            missing or null ``group`` reads as 0, as ISAT does).
     """
     path = Path(path)
     document = load_json(path)
@@ -140,6 +140,14 @@ def read_lerf_labels(path: str | os.PathLike[str]) -> FrameLabels:
             raise InputError(path, f"{where}: 'segmentation' {problem}")
         if not np.isfinite(polygon).all():
             raise InputError(path, f"{where}: 'segmentation' has NaN or infinite values")
+        low, high = polygon.min(axis=0), polygon.max(axis=0)
+        if high[0] <= 0 or high[1] <= 0 or low[0] >= width or low[1] >= height:
+            raise InputError(
+                path,
+                f"{where} ({entry['category']!r}): 'segmentation' lies wholly outside the "
+                f"{width:g}×{height:g} image (x {low[0]:g} to {high[0]:g}, y {low[1]:g} to "
+                f"{high[1]:g}), so its mask would be empty",
+            )
         bbox = entry.get("bbox")
         if bbox is None:
             low, high = polygon.min(axis=0), polygon.max(axis=0)
