@@ -52,12 +52,27 @@ def test_the_token_comes_in_the_url_or_its_cookie():
     assert "no valid token" in _problem(guard, "/?token=wrong", Host=host)
     assert _problem(guard, f"/?token={TOKEN}", Host=host) is None
     assert _problem(guard, f"/?x=1&token={TOKEN}", Host=host) is None
-    cookie = f"thgs-viewer-token={TOKEN}"
-    assert _problem(guard, Host=host, Cookie=cookie) is None
-    assert _problem(guard, Host=host, Cookie=f"other=1; {cookie}") is None
-    assert "no valid token" in _problem(guard, Host=host, Cookie="thgs-viewer-token=wrong")
-    assert "no valid token" in _problem(guard, Host=host, Cookie='bad"cookie')
-    assert guard.set_cookie().startswith(f"{cookie}; HttpOnly; SameSite=Strict")
+    cookie, own = f"thgs-viewer-token-8080={TOKEN}", "http://127.0.0.1:8080"
+    # the cookie counts on the page's own requests: its Origin, or a same-origin fetch
+    assert _problem(guard, Host=host, Origin=own, Cookie=cookie) is None
+    assert _problem(guard, Host=host, Sec_Fetch_Site="same-origin", Cookie=cookie) is None
+    assert _problem(guard, Host=host, Origin=own, Cookie=f"other=1; {cookie}") is None
+    # replayed by another local service, without the page's headers: refused
+    assert "no valid token" in _problem(guard, Host=host, Cookie=cookie)
+    assert "no valid token" in _problem(
+        guard, Host=host, Sec_Fetch_Site="cross-site", Cookie=cookie
+    )
+    # another viewer's cookie on this host (port 9090) is not this one's
+    other_port = f"thgs-viewer-token-9090={TOKEN}"
+    assert "no valid token" in _problem(guard, Host=host, Origin=own, Cookie=other_port)
+    assert "no valid token" in _problem(
+        guard, Host=host, Origin=own, Cookie=f"thgs-viewer-token={TOKEN}"
+    )
+    assert "no valid token" in _problem(
+        guard, Host=host, Origin=own, Cookie="thgs-viewer-token-8080=wrong"
+    )
+    assert "no valid token" in _problem(guard, Host=host, Origin=own, Cookie='bad"cookie')
+    assert guard.set_cookie(8080).startswith(f"{cookie}; HttpOnly; SameSite=Strict")
     assert len(new_token()) == 32 and new_token() != new_token()
 
 
@@ -100,9 +115,10 @@ def test_a_hostile_client_is_refused(running, caplog):
     # the printed URL opens the page and hands the page its cookie
     status, body, cookie = _get(url)
     assert status == 200 and "<html" in body.lower()
-    assert cookie.startswith(f"thgs-viewer-token={app.token};")
-    plain = f"http://127.0.0.1:{port}/"
-    assert _get(plain, Cookie=f"thgs-viewer-token={app.token}")[0] == 200
+    assert cookie.startswith(f"thgs-viewer-token-{port}={app.token};")
+    plain, cookie = f"http://127.0.0.1:{port}/", f"thgs-viewer-token-{port}={app.token}"
+    assert _get(plain, Cookie=cookie, **{"Sec-Fetch-Site": "same-origin"})[0] == 200
+    assert _get(plain, Cookie=cookie)[0] == 403  # the cookie replayed without the page's headers
     # no token; a rebound host name; another site's page: 403, and the scene is not sent
     for headers in (
         {},
@@ -112,7 +128,7 @@ def test_a_hostile_client_is_refused(running, caplog):
         status, body, _ = _get(plain if not headers else url, **headers)
         assert status == 403 and "thgs view:" in body and app.token not in body
     # the websocket that carries the scene and the GUI: only the page's own
-    own, cookie = f"http://127.0.0.1:{port}", f"thgs-viewer-token={app.token}"
+    own = f"http://127.0.0.1:{port}"
     assert _websocket(port, own, cookie)
     assert not _websocket(port, "http://evil.example", cookie)
     assert not _websocket(port, own, None)

@@ -13,7 +13,12 @@ when:
   pages);
 - it carries the secret token made at start-up, as ``?token=…`` in the URL the viewer prints (as
   Jupyter does) or as the cookie the server sets when the page is loaded with it (so the page's
-  own websocket is let in) — unless the user opted out (``token=None``).
+  own websocket is let in) — unless the user opted out (``token=None``). The cookie is named
+  after the server's port (``thgs-viewer-token-<port>``: two viewers on one host keep their own)
+  and counts only on a request the browser marks as the page's own: this server's ``Origin``
+  (every websocket handshake) or ``Sec-Fetch-Site: same-origin`` (the page's files). Browsers
+  send a ``127.0.0.1`` cookie to every port, so another local service receives it; replayed
+  without those headers it opens nothing.
 
 Anything else gets ``403 Forbidden`` and a logged warning (without the token). viser (1.1) has no
 hook for this, so :func:`guarded_websockets` wraps ``websockets.asyncio.server.serve`` while the
@@ -40,6 +45,7 @@ logger = logging.getLogger(__name__)
 
 _LOOPBACK = frozenset({"localhost", "127.0.0.1", "::1"})
 _COOKIE = "thgs-viewer-token"
+"""The cookie's name before ``-<port>``."""
 _PATCH = threading.Lock()
 
 
@@ -98,7 +104,7 @@ class AccessGuard:
                 same = False
             if not same:
                 return f"Origin {origin!r} is not this server"
-        if self.token is not None and not self._has_token(headers, path):
+        if self.token is not None and not self._has_token(headers, path, port):
             return "no valid token (open the URL that thgs view printed)"
         return None
 
@@ -109,20 +115,26 @@ class AccessGuard:
             hmac.compare_digest(value.encode(), self.token.encode()) for value in given
         )
 
-    def set_cookie(self) -> str:
-        """The ``Set-Cookie`` value that lets the page's later requests in."""
-        return f"{_COOKIE}={self.token}; HttpOnly; SameSite=Strict; Path=/"
+    def set_cookie(self, port: int) -> str:
+        """The ``Set-Cookie`` value that lets the page's later requests to ``port`` in."""
+        return f"{_COOKIE}-{port}={self.token}; HttpOnly; SameSite=Strict; Path=/"
 
-    def _has_token(self, headers: Any, path: str) -> bool:
+    def _has_token(self, headers: Any, path: str, port: int) -> bool:
         assert self.token is not None
         if self.gave_token_in_url(path):
             return True
+        # the Origin, when present, was checked to be this server's
+        own_page = (
+            headers.get("Origin") is not None or headers.get("Sec-Fetch-Site") == "same-origin"
+        )
+        if not own_page:
+            return False
         for line in headers.get_all("Cookie"):
             try:
                 cookie = SimpleCookie(line)
             except CookieError:
                 continue
-            morsel = cookie.get(_COOKIE)
+            morsel = cookie.get(f"{_COOKIE}-{port}")
             if morsel is not None and hmac.compare_digest(
                 morsel.value.encode(), self.token.encode()
             ):
@@ -143,7 +155,7 @@ class AccessGuard:
                 return connection.respond(http.HTTPStatus.FORBIDDEN, f"thgs view: {reason}\n")
             response = process_request(connection, request) if process_request else None
             if response is not None and self.gave_token_in_url(request.path):
-                response.headers["Set-Cookie"] = self.set_cookie()
+                response.headers["Set-Cookie"] = self.set_cookie(local[1])
             return response
 
         return checked
