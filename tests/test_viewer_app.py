@@ -16,6 +16,7 @@ from urllib.parse import urlsplit
 import numpy as np
 import pytest
 
+from thgs.errors import InputError
 from thgs.viewer.app import start_viewer, viewer_url
 from thgs.viewer.splats import pack_rgba
 
@@ -114,6 +115,23 @@ def test_exports_stay_inside_the_export_root(app, tmp_path):
         app.export_folder.value = inside
         _press(app.export_button)
         assert app.problem is None and (folder / "mug.ply").is_file(), inside
+
+
+def test_a_problem_clears_when_the_next_action_succeeds(app):
+    app.query_text.value = "   "
+    _press(app.search)
+    assert "type something" in app.problem and "Problem:" in app.status.content
+    app.query_text.value = "mug"
+    _press(app.search)
+    assert app.problem is None and "Problem:" not in app.status.content
+
+
+def test_an_export_root_that_is_a_file_is_refused_before_the_server_starts(small_field, tmp_path):
+    taken = tmp_path / "exports"
+    taken.write_text("mine")
+    with pytest.raises(InputError, match=rf"{taken}: is a file; the export root is the folder"):
+        start_viewer(small_field, port=0, export_root=taken)
+    assert taken.read_text() == "mine"
 
 
 def test_open_field_tells_nothing_about_files_that_are_not_fields(app, tmp_path, small_field):

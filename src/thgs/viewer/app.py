@@ -249,6 +249,7 @@ class ViewerApp:
                 if self.state is None:
                     raise ThgsError("no field is open: give a field file under Field")
                 action(self.state, event)
+                self.problem = None  # the action went through: an earlier problem is over
                 self.refresh()
 
         return run
@@ -503,11 +504,16 @@ def start_viewer(
 
     Raises:
         ThgsError: viser is not installed (``pip install 'thgs[viewer]'``).
+        InputError: ``export_root`` exists and is not a folder (before the server starts).
     """
     try:
         import viser
     except ImportError as error:
         raise ThgsError("the viewer needs viser: pip install 'thgs[viewer]'") from error
+    if export_root is not None and Path(export_root).exists() and not Path(export_root).is_dir():
+        raise InputError(
+            export_root, "is a file; the export root is the folder exports go into (--export-root)"
+        )
 
     guard = AccessGuard(host, new_token() if token else None)
     # viser prints a banner (the CLI prints instead)
