@@ -1009,3 +1009,23 @@ def test_eval_mean_checks_its_output_first_and_leaves_nothing_when_interrupted(
     code, _, err = run(["eval-mean", *map(str, reports), "-o", str(means)], capsys)
     assert code == 0, err
     assert json.loads(means.read_text())["means"] == {"lerf": {"miou": 0.5}}
+
+
+def test_ctrl_c_while_the_command_starts_is_an_interruption():
+    """A KeyboardInterrupt while ``thgs`` imports its modules (seconds: torch, numba): exit 130
+    and one line, no traceback; ``import thgs`` itself does not import torch."""
+    code = (
+        "import builtins, sys\n"
+        "real = builtins.__import__\n"
+        "def refuse(name, *args, **kwargs):\n"
+        "    if name == 'thgs.cli':\n"
+        "        raise KeyboardInterrupt\n"
+        "    return real(name, *args, **kwargs)\n"
+        "builtins.__import__ = refuse\n"
+        "import thgs\n"
+        "assert 'torch' not in sys.modules\n"
+        "from thgs._main import main\n"
+        "main()\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert (done.returncode, done.stderr) == (130, "error: interrupted\n")

@@ -74,7 +74,7 @@ def test_wheel_holds_the_package_its_types_marker_and_the_license(wheel, metadat
     assert metadata["License-Expression"] == "Apache-2.0"
     assert not any(n.startswith(("tests/", "docs/")) for n in names)
     (entry_points,) = [n for n in names if n.endswith(".dist-info/entry_points.txt")]
-    assert "thgs = thgs.cli:entrypoint" in wheel.read(entry_points).decode()
+    assert "thgs = thgs._main:main" in wheel.read(entry_points).decode()
 
 
 def test_metadata_urls_extras_and_the_partition_dependency(metadata):
