@@ -84,6 +84,22 @@ def test_system_errors_name_the_target_not_the_temporary(tmp_path):
     assert hidden(tmp_path) == [] and not full.exists()
 
 
+def test_folder_errors_name_the_folder_and_the_file_inside(tmp_path):
+    """A full disk while a folder is filled: the error names the folder being written and the
+    file inside the hidden one; NumPy's short write is called what it is."""
+    target = tmp_path / "dataset"
+    with pytest.raises(OSError) as raised, atomic_folder(target) as staging:
+        (staging / "label").mkdir()
+        raise OSError(errno.ENOSPC, "No space left on device", str(staging / "label" / "a.json"))
+    assert raised.value.filename == str(target) and raised.value.errno == errno.ENOSPC
+    assert raised.value.strerror == "No space left on device (writing label/a.json)"
+    with pytest.raises(OSError) as raised, atomic_folder(target):
+        raise OSError("307200 requested and 141280 written")
+    assert raised.value.filename == str(target)
+    assert raised.value.strerror.startswith("No space left on device? (307200 requested")
+    assert not target.exists() and hidden(tmp_path) == []
+
+
 def test_folder_is_moved_in_whole_with_plain_permissions(tmp_path):
     plain = tmp_path / "plain"
     plain.mkdir()

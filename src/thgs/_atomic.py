@@ -139,6 +139,20 @@ def _new_file(path: Path) -> int:
     return os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC, 0o666)
 
 
+def _named_after(error: OSError, target: Path, staging: Path) -> OSError:
+    """``error`` naming ``target`` instead of a file in ``staging``: the file inside is given
+    in the message, and a short write (NumPy's ``N requested and M written``) is called the
+    full disk it almost always is."""
+    reason = error.strerror or str(error)
+    if error.errno is None and "requested and" in reason:
+        reason = f"No space left on device? ({reason})"
+    inside = ""
+    if error.filename:
+        with contextlib.suppress(ValueError):
+            inside = f" (writing {Path(error.filename).relative_to(staging)})"
+    return OSError(error.errno, f"{reason}{inside}", str(target))
+
+
 @contextlib.contextmanager
 def atomic_output(path: str | os.PathLike[str], mode: str = "wb") -> Iterator[IO]:
     """Open a temporary file next to ``path``; on success flush, fsync and rename it to ``path``.
@@ -229,7 +243,10 @@ def atomic_folder(path: str | os.PathLike[str], *, replace: bool = False) -> Ite
     """
     target = Path(path)
     with staging_folder(target) as tmp:
-        yield tmp
+        try:
+            yield tmp
+        except OSError as error:  # named after the folder, not the hidden one being filled
+            raise _named_after(error, target, tmp) from error
         if replace and target.is_dir():
             with _sibling(target, lambda candidate: os.replace(target, candidate)) as (old, _):
                 try:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 from typing import Annotated, Literal
 
@@ -296,6 +297,7 @@ def export(
         raise InputError("--color-level", f"must be 0, 1, 2 or 3, got {color_level}")
     config = _query_config(mode, level, top, threshold, min_gaussians) if query else None
     semantic, loaded = open_field_scene(field, scene)
+    created = not out.exists()
     written: list[Path] = []
     regions = [f"regions-{name}" for name in LEVEL_NAMES]  # never a query's name
     try:
@@ -316,6 +318,9 @@ def export(
     except BaseException:
         for path in written:  # the whole set or none of it
             path.unlink(missing_ok=True)
+        if created:
+            with contextlib.suppress(OSError):  # only if nothing else was put there
+                out.rmdir()
         raise
     if query:
         stdout.print(_selection_table(f"thgs export {field} ({config.mode})", semantic, selections))
