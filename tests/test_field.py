@@ -87,6 +87,17 @@ def write_raw(path: Path, tensors: dict[str, np.ndarray], header: dict | None) -
     path.write_bytes(save(tensors, metadata=metadata))
 
 
+def checksum(tensors: dict[str, np.ndarray]) -> str:
+    """The documented checksum, by hand: SHA-256 over each tensor in name order of
+    ``name \\0 dtype \\0 [shape] \\0`` and its bytes."""
+    digest = hashlib.sha256()
+    for name in sorted(tensors):
+        array = np.ascontiguousarray(tensors[name])
+        digest.update(f"{name}\0{array.dtype.str}\0{list(array.shape)}\0".encode())
+        digest.update(array.tobytes())
+    return digest.hexdigest()
+
+
 def read_raw(path: Path) -> tuple[dict[str, np.ndarray], dict]:
     with safe_open(str(path), framework="numpy") as handle:
         tensors = {key: handle.get_tensor(key) for key in handle.keys()}
@@ -402,12 +413,13 @@ def test_file_layout_is_the_documented_one(tmp_path):
     np.testing.assert_array_equal(tensors["seen_1"], [1, 1, 0])
     assert header == {
         "format": "thgs.semantic_field",
-        "version": 2,
+        "version": 3,
         "space": "sentence-transformers/all-MiniLM-L6-v2",
         "fingerprint": FINGERPRINT,
         "config": {"partition": {"levels": ["s", "m", "l"], "regularization": 0.1}, "seed": 0},
         "gaussians": 6,
         "region_counts": [4, 3, 2, 1],
+        "checksum": checksum(tensors),
     }
     with safe_open(str(path), framework="numpy") as handle:
         raw = handle.metadata()["thgs"]
@@ -499,6 +511,7 @@ def _raw_field(**changes) -> tuple[dict[str, np.ndarray], dict]:
         "config": field.config,
         "gaussians": 6,
         "region_counts": [4, 3, 2, 1],
+        "checksum": checksum(tensors),
     }
     header.update(changes)
     return tensors, header
@@ -536,8 +549,8 @@ def _retype(tensors: dict, name: str, dtype: type) -> dict:
 
 TAMPERED = {
     "newer version": (
-        lambda t, h: (t, {**h, "version": 3}),
-        "written by a newer thgs (version 3), this one reads 2",
+        lambda t, h: (t, {**h, "version": 4}),
+        "written by a newer thgs (version 4), this one reads 3",
     ),
     "version zero": (lambda t, h: (t, {**h, "version": 0}), "invalid format version 0"),
     "version as text": (lambda t, h: (t, {**h, "version": "1"}), "invalid format version '1'"),
@@ -572,7 +585,7 @@ TAMPERED = {
     ),
     "tensor unexpected": (
         lambda t, h: ({**t, "names": np.zeros(1, np.uint8)}, h),
-        "unexpected tensors ['names'] in format version 2",
+        "unexpected tensors ['names'] in format version 3",
     ),
     "labels as int64": (
         lambda t, h: (_retype(t, "labels", np.int64), h),
@@ -679,3 +692,19 @@ def test_documented_example_is_the_tested_one():
     np.testing.assert_array_equal(namespace["objects_of_superpoints"], [0, 0, 0, 0])
     np.testing.assert_array_equal(namespace["scores"], [0, 1])
     np.testing.assert_array_equal(namespace["selected"], [False] * 4 + [True] * 2)
+
+
+def test_content_altered_after_writing_is_refused_and_version_2_still_reads(tmp_path):
+    """A feature nudged by 1e-6 (still a unit vector, every invariant holds) under an intact
+    header: the checksum refuses it. A version-2 file has no checksum and reads as before."""
+    tensors, header = _raw_field()
+    tensors["features_1"] = tensors["features_1"].copy()
+    tensors["features_1"][0, 0] += 1e-6
+    write_raw(tmp_path / "altered.thgs", tensors, header)
+    with pytest.raises(InputError, match="its content is not what was written") as caught:
+        load_field(tmp_path / "altered.thgs")
+    assert caught.value.source == str(tmp_path / "altered.thgs")
+    tensors, header = _raw_field(version=2)
+    del header["checksum"]
+    write_raw(tmp_path / "v2.thgs", tensors, header)
+    np.testing.assert_array_equal(load_field(tmp_path / "v2.thgs").labels, mug_field().labels)

@@ -15,7 +15,9 @@ One field is stored as one safetensors file::
     metadata     {"thgs": JSON, sorted keys}
 
 The file is written atomically, and the same field always gives the same bytes; the build's
-timings are not in it (version 2), so building the same inputs twice gives the same file.
+timings are not in it (version 2), so building the same inputs twice gives the same file. The
+metadata holds the SHA-256 of the tensors (version 3), checked on every read: a file altered
+after it was written (zeroed labels with the header intact) is refused, not trusted.
 """
 
 from __future__ import annotations
@@ -48,7 +50,7 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3
 """Version of the semantic-field file layout this thgs writes (and the newest it reads)."""
 
 _FORMAT = "thgs.semantic_field"
@@ -57,6 +59,20 @@ _UNIT_TOLERANCE = 1e-4
 _METADATA_KEYS = ("config", "fingerprint", "gaussians", "region_counts", "space")
 _V1_METADATA_KEYS = (*_METADATA_KEYS, "timings")
 """Version 1 also stored the build's timings, which made every build's bytes differ."""
+_V3_METADATA_KEYS = (*_METADATA_KEYS, "checksum")
+"""Version 3 adds the SHA-256 of the tensors (:func:`_tensors_checksum`)."""
+
+
+def _tensors_checksum(tensors: dict[str, np.ndarray]) -> str:
+    """SHA-256 of the tensors' names, dtypes, shapes and bytes, in name order."""
+    digest = hashlib.sha256()
+    for name in sorted(tensors):
+        array = np.ascontiguousarray(tensors[name])
+        digest.update(f"{name}\0{array.dtype.str}\0{list(array.shape)}\0".encode())
+        digest.update(array.tobytes())
+    return digest.hexdigest()
+
+
 _TENSOR_DTYPES: dict[str, type[np.generic]] = {
     "labels": np.int32,
     **{f"parents_{k}": np.int32 for k in (1, 2, 3)},
@@ -327,6 +343,7 @@ def save_field(path: str | os.PathLike[str], field: SemanticField) -> None:
         "config": field.config,
         "gaussians": len(field),
         "region_counts": list(field.region_counts),
+        "checksum": _tensors_checksum(tensors),
     }
     metadata = {"thgs": json.dumps(header, sort_keys=True, allow_nan=False)}
     data = save(tensors, metadata=metadata)
@@ -344,8 +361,8 @@ def load_field(path: str | os.PathLike[str]) -> SemanticField:
     Raises:
         InputError: naming ``path``, if the file is missing, unreadable, not a safetensors
             file (or truncated), not a thgs semantic field, written by a newer thgs, lacks
-            tensors or metadata, has metadata that disagrees with its tensors, or holds a field
-            that breaks an invariant.
+            tensors or metadata, has metadata that disagrees with its tensors, holds a field
+            that breaks an invariant, or (version 3) whose tensors are not what was written.
     """
     from safetensors import SafetensorError, safe_open
 
@@ -403,6 +420,12 @@ def load_field(path: str | os.PathLike[str]) -> SemanticField:
         timings=dict(header.get("timings", [])),
     )
     field.check(source=str(path))
+    if version >= 3 and header["checksum"] != _tensors_checksum(tensors):
+        raise InputError(
+            path,
+            "its content is not what was written (the checksum of its tensors differs): the "
+            "file was damaged or altered; build the field again",
+        )
     logger.debug("read semantic field %s from %s", field, path)
     return field
 
@@ -424,9 +447,8 @@ def _read_header(path: Path, metadata: dict[str, str]) -> dict[str, Any]:
             path,
             f"written by a newer thgs (version {version}), this one reads {FORMAT_VERSION}",
         )
-    missing = [
-        key for key in (_V1_METADATA_KEYS if version == 1 else _METADATA_KEYS) if key not in header
-    ]
+    expected = {1: _V1_METADATA_KEYS, 2: _METADATA_KEYS}.get(version, _V3_METADATA_KEYS)
+    missing = [key for key in expected if key not in header]
     if missing:
         raise InputError(path, f"metadata lacks {missing}")
     if version > 1:
