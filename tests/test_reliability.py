@@ -238,3 +238,69 @@ def test_damaged_openhype_annotations(openhype_folder, tmp_path, data):
         _check(read_openhype_frame, path, "gt/")
         return
     _check(read_openhype_frame, path, "DSC00001.json")
+
+
+@st.composite
+def altered(draw, original: bytes) -> bytes:
+    """The original with one to eight bytes changed, its length kept (a truncation is caught by
+    any reader; a change of content under an intact header is what a checksum is for)."""
+    data = bytearray(original)
+    for _ in range(draw(st.integers(1, 8))):
+        data[draw(st.integers(0, len(data) - 1))] = draw(st.integers(0, 255))
+    return bytes(data)
+
+
+@SETTINGS
+@given(data=st.data())
+def test_an_altered_field_is_refused_or_read_unchanged(small_field, tmp_path, data):
+    """Never a different field: every tensor equal to the original's, or an InputError."""
+    original = load_field(small_field)
+    path = tmp_path / "field.thgs"
+    path.write_bytes(data.draw(altered(small_field.read_bytes())))
+    try:
+        field = load_field(path)
+    except InputError as error:
+        assert str(path) in str(error)
+        return
+    np.testing.assert_array_equal(field.labels, original.labels)
+    for k in range(3):
+        np.testing.assert_array_equal(field.parents[k], original.parents[k])
+        np.testing.assert_array_equal(field.features[k], original.features[k])
+        np.testing.assert_array_equal(field.seen[k], original.seen[k])
+
+
+@pytest.fixture(scope="module")
+def cached_lift(small_dataset, tmp_path_factory):
+    """A lift cache file of the small dataset, its key, view count and lifts."""
+    from thgs.guidance import load_guidance
+    from thgs.lift import LiftConfig
+    from thgs.lift_cache import lift_cache_path, lift_key
+    from thgs.pipeline import lift_scene
+    from thgs.scene import load_scene
+
+    scene = load_scene(small_dataset)
+    guidance = load_guidance(small_dataset / "language_features", scene.cameras)
+    folder = tmp_path_factory.mktemp("lift-cache")
+    lifted = lift_scene(scene, guidance, LiftConfig(), cache=folder).lifted
+    key = lift_key(scene.gaussians, scene.cameras, guidance, LiftConfig())
+    return lift_cache_path(folder, key), key, len(guidance), list(lifted)
+
+
+@SETTINGS
+@given(data=st.data())
+def test_an_altered_lift_cache_is_refused_or_read_unchanged(cached_lift, tmp_path, data):
+    """Never a different lift: read_cached_lift gives every tensor bit for bit, or None (the
+    build lifts again)."""
+    import torch
+
+    from thgs.lift_cache import read_cached_lift
+
+    original_path, key, views, lifted = cached_lift
+    path = tmp_path / original_path.name
+    path.write_bytes(data.draw(altered(original_path.read_bytes())))
+    read = read_cached_lift(path, key, views)
+    if read is None:
+        return
+    for got, expected in zip(read, lifted, strict=True):
+        for name in ("gaussians", "labels", "depths", "max_weights"):
+            assert torch.equal(getattr(got, name), getattr(expected, name)), name
