@@ -108,6 +108,11 @@ def test_set_takes_plain_text_for_choices():
         ("superpoints.lift.code_dim=100000000", "code_dim: must be from 2 to 1,024"),
         ("superpoints.lift.raster.tile_size=100000", "tile_size from 1 to 256"),
         ("superpoints.partition.regularization=1e30", "regularization must be from 0 to 100"),
+        ("superpoints.partition.cp_it_max=1000000000", "cp_it_max must be from 1 to 1,000"),
+        ("superpoints.partition.split_alternatives=100000", "split_alternatives must be from 2"),
+        ("merge.neighbors=1000000000", "neighbors: must be from 2 to 1,000"),
+        ("repeats.neighbors=1000000000", "neighbors: must be from 2 to 1,000"),
+        ("features.median_steps=1000000000", "median_steps must be an integer from 0 to 1,000"),
     ],
 )
 def test_bad_settings_name_the_key(assignment, message):

@@ -80,7 +80,8 @@ class FeatureConfig:
         min_visible: mode centres: a view contributes to a region only if at least this share
             (in [0, 1]) of the region's Gaussians are used in it.
         median_steps: both modes: steps from the weighted mean of the views' unit vectors
-            towards their weighted median direction (ours 2; the reference 0: the mean). Each
+            towards their weighted median direction (ours 2; the reference 0: the mean; at
+            most 1,000). Each
             step pools the views again, view v's vector ``u_v`` of region r weighing
             ``p_r^v / (‖u_v − m_r‖ + median_softness)`` with ``m_r`` the previous step's unit
             feature: one view that disagrees with the others (a part seen mostly through or
@@ -113,10 +114,11 @@ class FeatureConfig:
             if not 0.0 <= value < 1.0:
                 raise InputError("FeatureConfig", f"{name} must be in [0, 1), got {value}")
         if isinstance(self.median_steps, bool) or not (
-            isinstance(self.median_steps, int) and self.median_steps >= 0
+            isinstance(self.median_steps, int) and 0 <= self.median_steps <= 1000
         ):
             raise InputError(
-                "FeatureConfig", f"median_steps must be an integer ≥ 0, got {self.median_steps!r}"
+                "FeatureConfig",
+                f"median_steps must be an integer from 0 to 1,000, got {self.median_steps!r}",
             )
         if not self.median_softness > 0:
             raise InputError(

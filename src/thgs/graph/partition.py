@@ -65,7 +65,8 @@ class PartitionConfig:
             that is disconnected from the rest and smaller than this stays as it is.
         cp_dif_tol: cut pursuit stops when the relative change of the iterate falls below this
             (1e-2).
-        cp_it_max: at most this many cut-pursuit iterations (cut, reduce, merge) (15).
+        cp_it_max: at most this many cut-pursuit iterations (cut, reduce, merge) (15; at most
+            1,000: the solver's objective can oscillate without meeting ``cp_dif_tol``).
         split_damp_ratio: edge weights in the split step start at this fraction of their value
             and grow linearly to it (0.7; 1 = no damping).
         flip_normals_up: flip each normal to world z ≥ 0 before use, as the reference does on
@@ -83,8 +84,8 @@ class PartitionConfig:
             ``synth-small`` at R = 1: sub-part purity 0.895 instead of 0.958, docs/partition.md).
             Identical when the distances are not reweighted.
         split_alternatives: K, the number of candidate values each component's split step
-            tries (the solver's ``K``; ours 6, the reference the solver's default 2). With 2 the
-            split of a large component follows its widest spread, which on a table top is
+            tries (the solver's ``K``, 2 to 64; ours 6, the reference the solver's default 2).
+            With 2 the split of a large component follows its widest spread, which on a table top is
             position: a flat object of another colour lying on it stays in the table's
             superpoint (synth-small seed 0: 27 % of a stack of books). More alternatives cost
             split time and give purer superpoints; the solver's objective is not lower for it
@@ -117,18 +118,20 @@ class PartitionConfig:
             )
         if not (self.min_comp_weight >= 0 and self.cp_dif_tol >= 0):
             raise InputError("PartitionConfig", "min_comp_weight and cp_dif_tol must be ≥ 0")
-        if self.cp_it_max < 1:
-            raise InputError("PartitionConfig", f"cp_it_max must be ≥ 1, got {self.cp_it_max}")
+        if not 1 <= self.cp_it_max <= 1000:
+            raise InputError(
+                "PartitionConfig", f"cp_it_max must be from 1 to 1,000, got {self.cp_it_max:,}"
+            )
         if self.block_size != 0 and not MIN_BLOCK_SIZE <= self.block_size:
             raise InputError(
                 "PartitionConfig.block_size",
                 f"must be 0 (no blocks) or at least {MIN_BLOCK_SIZE} Gaussians, "
                 f"got {self.block_size}",
             )
-        if self.split_alternatives < 2:
+        if not 2 <= self.split_alternatives <= 64:
             raise InputError(
                 "PartitionConfig",
-                f"split_alternatives must be at least 2, got {self.split_alternatives}",
+                f"split_alternatives must be from 2 to 64, got {self.split_alternatives:,}",
             )
         if not 0 < self.split_damp_ratio <= 1:
             raise InputError(

@@ -45,6 +45,7 @@ import numpy as np
 import torch
 
 from thgs.errors import InputError
+from thgs.graph.knn import MAX_NEIGHBOURS
 from thgs.hierarchy.adjacency import UnitGraph, coarsened_graph, gaussian_neighbors, unit_graph
 from thgs.hierarchy.affinity import MaskEvidence, Source, mask_evidence, pair_affinity
 from thgs.hierarchy.coherence import split_incoherent
@@ -72,7 +73,8 @@ class MergeConfig:
     Attributes:
         thresholds: affinity a unit needs to join a region, per pass (s, m, l): (0.9, 0.7, 0.7).
             Affinities are cosine-like, in [0, 1] for non-negative histograms.
-        neighbors: k of the 3-D Gaussian KNN (itself included) that defines touching units (8).
+        neighbors: k of the 3-D Gaussian KNN (itself included) that defines touching units (8;
+            at most 1,000).
         one_hop_weight: weight of region members that touch the candidate, relative to members
             two hops away (2.0, the reference's effective 2 : 1).
         min_region_gaussians: after the last pass, a region with fewer Gaussians than this (and at
@@ -127,10 +129,13 @@ class MergeConfig:
     def __post_init__(self) -> None:
         if len(self.thresholds) != 3 or not all(np.isfinite(t) for t in self.thresholds):
             raise InputError("MergeConfig", "thresholds must be three finite numbers")
-        if self.neighbors < 2 or self.enhance_stride < 1 or self.max_absorbed_units < 0:
+        if not 2 <= self.neighbors <= MAX_NEIGHBOURS:
             raise InputError(
-                "MergeConfig", "need neighbors ≥ 2, enhance_stride ≥ 1, max_absorbed_units ≥ 0"
+                "MergeConfig.neighbors",
+                f"must be from 2 to {MAX_NEIGHBOURS:,}, got {self.neighbors:,}",
             )
+        if self.enhance_stride < 1 or self.max_absorbed_units < 0:
+            raise InputError("MergeConfig", "need enhance_stride ≥ 1, max_absorbed_units ≥ 0")
         if self.one_hop_weight <= 0 or self.min_region_gaussians < 0:
             raise InputError("MergeConfig", "one_hop_weight must be > 0, min_region_gaussians ≥ 0")
         if not (self.two_hop_weight >= 0 and self.visibility_power >= 0 and self.rounds >= 1):

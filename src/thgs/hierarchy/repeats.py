@@ -30,6 +30,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from thgs.errors import InputError
+from thgs.graph.knn import MAX_NEIGHBOURS
 from thgs.hierarchy.adjacency import gaussian_neighbors, unit_graph
 from thgs.hierarchy.levels import RegionLevels
 from thgs.hierarchy.merge import renumber_by_units
@@ -63,8 +64,11 @@ class RepeatConfig:
             raise InputError("RepeatConfig", f"similarity must be in (0, 1], got {self.similarity}")
         if not 0.0 <= self.margin < 2.0:
             raise InputError("RepeatConfig", f"margin must be in [0, 2), got {self.margin}")
-        if self.neighbors < 2:
-            raise InputError("RepeatConfig", f"neighbors must be ≥ 2, got {self.neighbors}")
+        if not 2 <= self.neighbors <= MAX_NEIGHBOURS:
+            raise InputError(
+                "RepeatConfig.neighbors",
+                f"must be from 2 to {MAX_NEIGHBOURS:,}, got {self.neighbors:,}",
+            )
 
 
 def _pairs_within_rows(indptr: np.ndarray, indices: np.ndarray):
