@@ -140,16 +140,21 @@ def _new_file(path: Path) -> int:
 
 
 def _named_after(error: OSError, target: Path, staging: Path) -> OSError:
-    """``error`` naming ``target`` instead of a file in ``staging``: the file inside is given
-    in the message, and a short write (NumPy's ``N requested and M written``) is called the
-    full disk it almost always is."""
+    """``error`` naming ``target`` when it names no file (a full disk) or ``staging`` (the hidden
+    file or folder being filled) or a file inside it, given in the message; a short write
+    (NumPy's ``N requested and M written``) is called the full disk it almost always is. An
+    error naming another file is returned as it is."""
+    inside = ""
+    if error.filename:
+        try:
+            relative = Path(error.filename).relative_to(staging)
+        except ValueError:
+            return error
+        if relative != Path("."):
+            inside = f" (writing {relative})"
     reason = error.strerror or str(error)
     if error.errno is None and "requested and" in reason:
         reason = f"No space left on device? ({reason})"
-    inside = ""
-    if error.filename:
-        with contextlib.suppress(ValueError):
-            inside = f" (writing {Path(error.filename).relative_to(staging)})"
     return OSError(error.errno, f"{reason}{inside}", str(target))
 
 
@@ -174,9 +179,10 @@ def atomic_output(path: str | os.PathLike[str], mode: str = "wb") -> Iterator[IO
                     os.fsync(handle.fileno())
                 os.replace(tmp, target)
             except OSError as error:
-                if error.filename not in (None, str(tmp), tmp):
+                named = _named_after(error, target, tmp)
+                if named is error:
                     raise
-                raise OSError(error.errno, error.strerror or str(error), str(target)) from error
+                raise named from error
         except BaseException:
             with contextlib.suppress(FileNotFoundError):
                 os.unlink(tmp)
@@ -246,7 +252,10 @@ def atomic_folder(path: str | os.PathLike[str], *, replace: bool = False) -> Ite
         try:
             yield tmp
         except OSError as error:  # named after the folder, not the hidden one being filled
-            raise _named_after(error, target, tmp) from error
+            named = _named_after(error, target, tmp)
+            if named is error:
+                raise
+            raise named from error
         if replace and target.is_dir():
             with _sibling(target, lambda candidate: os.replace(target, candidate)) as (old, _):
                 try:

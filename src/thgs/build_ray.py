@@ -20,7 +20,7 @@ import numpy as np
 
 from thgs.errors import ThgsError
 from thgs.guidance import ViewGuidance
-from thgs.lift import LiftConfig, ViewLift, lift_view
+from thgs.lift import LiftConfig, ViewLift, iter_lift_views, lift_view
 from thgs.scene import Cameras, Gaussians
 
 __all__ = ["ray_lift_views", "ray_solve", "ray_workers"]
@@ -75,8 +75,6 @@ def ray_lift_views(
         ThgsError: Ray is not installed or not initialised.
         InputError: as :func:`thgs.lift.iter_lift_views`, before any task starts.
     """
-    from thgs.lift import iter_lift_views
-
     ray = _ray()
     iter_lift_views(gaussians, cameras, guidance, config)  # its checks, before any task
     return _lifted_on_ray(ray, gaussians, cameras, guidance, config, progress)

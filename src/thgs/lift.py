@@ -39,7 +39,14 @@ from thgs.guidance import LEVELS, ViewGuidance
 from thgs.render import LabelWeights, RasterConfig, resolve_backend, splat_labels
 from thgs.scene import Cameras, Gaussians
 
-__all__ = ["LiftConfig", "ViewLift", "iter_lift_views", "lift_view", "lift_views"]
+__all__ = [
+    "LiftConfig",
+    "ViewLift",
+    "iter_lift_views",
+    "lift_view",
+    "lift_views",
+    "views_at_once",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -368,7 +375,7 @@ def lift_view(
     return lifted.check(len(gaussians), source=f"lift of {guidance.stem}")
 
 
-def _workers(gaussians: Gaussians, config: LiftConfig) -> int:
+def views_at_once(gaussians: Gaussians, config: LiftConfig) -> int:
     """Views lifted at once: one per numba thread for the numba backend (its kernels run a view
     serially and release the GIL); one on accelerators, which are parallel within a view."""
     backend, _ = resolve_backend(config.raster, gaussians.device)
@@ -384,7 +391,7 @@ def _weights_in_order(
 ) -> Iterator[tuple[int, Tensor, LabelWeights]]:
     """Each view's masks and per-mask weights, in view order; with several workers the next
     views are computed while one is decided (at most ``workers`` ahead, to bound memory)."""
-    workers = _workers(gaussians, config)
+    workers = views_at_once(gaussians, config)
 
     def weigh(index: int) -> tuple[int, Tensor, LabelWeights]:
         maps = segments(index)

@@ -54,8 +54,9 @@ _UNSET = "?" * 64
 """The checksum's place in a header being written, filled in once the tensors are written."""
 
 
-def _tensor_bytes(tensor: torch.Tensor) -> bytes:
-    return tensor.detach().cpu().contiguous().numpy().tobytes()
+def _tensor_bytes(tensor: torch.Tensor) -> np.ndarray:
+    """The tensor's bytes as a contiguous array (hashed and written without another copy)."""
+    return np.ascontiguousarray(tensor.detach().cpu().numpy())
 
 
 def _array_bytes(array: np.ndarray | torch.Tensor) -> bytes:

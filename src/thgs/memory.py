@@ -114,13 +114,13 @@ def _cgroup_room(proc: Path, cgroup_root: Path) -> tuple[int, str] | None:
         _, controllers, path = line.split(":", 2)
         relative = path.lstrip("/")
         if controllers == "":
-            names, folders = ("memory.max", "memory.current", "inactive_file"), [cgroup_root]
+            names, mount = ("memory.max", "memory.current", "inactive_file"), cgroup_root
         elif "memory" in controllers.split(","):
             names = ("memory.limit_in_bytes", "memory.usage_in_bytes", "total_inactive_file")
-            folders = [cgroup_root / "memory"]
+            mount = cgroup_root / "memory"
         else:
             continue
-        for folder in (folders[0] / relative, folders[0]):
+        for folder in (mount / relative, mount):
             limit = _read_int(folder / names[0])
             usage = _read_int(folder / names[1])
             if limit is None or usage is None or limit >= 1 << 60:

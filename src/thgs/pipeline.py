@@ -19,7 +19,6 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Protocol
 
-import numba
 import numpy as np
 import torch
 
@@ -47,7 +46,7 @@ from thgs.hierarchy import (
     group_repeated_parts,
     merge_levels,
 )
-from thgs.lift import LiftConfig, ViewLift, iter_lift_views
+from thgs.lift import LiftConfig, ViewLift, iter_lift_views, views_at_once
 from thgs.lift_cache import lift_cache_path, lift_key, read_cached_lift, write_lift
 from thgs.lift_store import DEFAULT_LIFT_MEMORY, LiftStore, lift_bytes
 from thgs.memory import check_build_memory
@@ -336,7 +335,7 @@ def lift_scene(
         int(cameras.widths.max()),
         int(cameras.heights.max()),
         memory,
-        0 if ray else numba.get_num_threads() if device.type == "cpu" else 1,
+        0 if ray else views_at_once(gaussians, config),
         device,
     )
     empty = [view.stem for view in guidance if not (view.segments >= 0).any()]

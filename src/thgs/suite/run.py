@@ -307,8 +307,10 @@ def _read_stamps(folder: Path) -> dict[str, Any]:
 
 
 def _write_stamp(folder: Path, stage: str, stamp: dict[str, Any]) -> None:
+    """Record ``stamp`` for ``stage``, with its outputs' state as they are now, and drop the
+    stamps of the stages after it."""
     stamps = _read_stamps(folder)
-    stamps[stage] = stamp
+    stamps[stage] = {**stamp, "outputs": _output_state(folder, stage)}
     for later in STAGES[STAGES.index(stage) + 1 :]:
         stamps.pop(later, None)
     write_json(folder / STAMPS, stamps)
@@ -531,9 +533,7 @@ def run_scene(
                 extra = _evaluate(scene, folder, config)
             seconds = time.perf_counter() - started
             digest = _digest(_inputs(scene, folder, config, stage))
-            outputs = _output_state(folder, stage)
-            stamp = {"digest": digest, "seconds": seconds, "outputs": outputs, **extra}
-            _write_stamp(folder, stage, stamp)
+            _write_stamp(folder, stage, {"digest": digest, "seconds": seconds, **extra})
             stages[stage] = "ran"
         result = _recorded(scene, folder, stages, None)
     except Exception as error:  # any failure of one scene is reported; the others go on
@@ -658,9 +658,7 @@ def _preprocess_on_ray(scenes, out, config, ray, progress) -> dict[str, str | No
         extra = {"images": len(target.jobs)}
         if summary is not None:
             extra["masks"] = list(summary.masks)
-        outputs = _output_state(folder, "preprocess")
-        stamp = {"digest": digest, "seconds": seconds, "outputs": outputs, **extra}
-        _write_stamp(folder, "preprocess", stamp)
+        _write_stamp(folder, "preprocess", {"digest": digest, "seconds": seconds, **extra})
         outcome[scene.key] = None
     return outcome
 
