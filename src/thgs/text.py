@@ -118,11 +118,17 @@ class TextEncoder(Protocol):
         ...
 
 
+_MINILM_VECTORS: dict[tuple[str, str], dict[str, np.ndarray]] = {}
+"""Per (model folder, device): phrase → its [384] float32 unit vector (:class:`MiniLMEncoder`)."""
+
+
 class MiniLMEncoder:
     """all-MiniLM-L6-v2 through sentence-transformers, on the CPU unless told otherwise.
 
     Each phrase is encoded on its own (no padding to a batch), so a phrase's vector never depends
-    on which other phrases were encoded with it; results are cached per phrase.
+    on which other phrases were encoded with it; results are cached per phrase, and the cache is
+    shared by every encoder of the same model folder and device in the process (a suite or a
+    test session encodes the 80 null phrases once, not once per field).
 
     Args:
         model_path: a sentence-transformers model folder; default the copy shipped in the PyPI
@@ -167,7 +173,7 @@ class MiniLMEncoder:
             else model.get_sentence_embedding_dimension  # sentence-transformers < 5
         )
         self.dim = int(dimension())
-        self._cache: dict[str, np.ndarray] = {}
+        self._cache = _MINILM_VECTORS.setdefault((str(model_path.resolve()), str(device)), {})
         logger.info("loaded text encoder %s (%d-D) from %s", self.space, self.dim, model_path)
 
     def encode(self, texts: list[str] | tuple[str, ...]) -> np.ndarray:

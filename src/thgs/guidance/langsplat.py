@@ -118,15 +118,18 @@ class ViewGuidance:
             )
         previous_max = -1
         for level, name in enumerate(LEVELS):
-            ids = self.level_ids(level)
-            if len(ids) and ids[0] <= previous_max:
+            ids = self.segments[level]
+            ids = ids[ids >= 0]
+            if not ids.size:
+                continue
+            lowest = int(ids.min())
+            if lowest <= previous_max:
                 raise InputError(
                     source,
-                    f"level {name!r} uses mask id {int(ids[0])}, not after the previous levels' "
+                    f"level {name!r} uses mask id {lowest}, not after the previous levels' "
                     f"ids (up to {previous_max}); expected LangSplat's level offsets",
                 )
-            if len(ids):
-                previous_max = int(ids[-1])
+            previous_max = int(ids.max())
         return self
 
 
