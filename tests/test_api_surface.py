@@ -138,6 +138,7 @@ def private_attribute_uses(root: Path = SOURCE) -> list[str]:
     return problems
 
 
+@pytest.mark.slow
 def test_no_private_name_crosses_modules():
     assert private_crossings() == []
     assert private_attribute_uses() == []

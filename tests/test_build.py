@@ -160,6 +160,7 @@ def test_instance_ablation_copies_the_object_level(tiled):
     assert matched_miou(field.labels[:, 1], hierarchy.labels[:, 3]) >= 0.95
 
 
+@pytest.mark.slow
 def test_reduced_synthetic_scene_builds_a_nested_field():
     synthetic = generate_scene(preset("synth-small", gaussians=20_000, views=12))
     guidance = oracle_views(synthetic, synthetic.hierarchy, OracleConfig())
@@ -170,6 +171,7 @@ def test_reduced_synthetic_scene_builds_a_nested_field():
     assert matched_miou(field.labels[:, 3], synthetic.hierarchy.labels[:, 3]) >= 0.7
 
 
+@pytest.mark.slow
 def test_a_tables_four_legs_become_one_part():
     # the legs touch only through the top and no mask shows them together: merging leaves one
     # part per leg (IoU 0.25 with "table legs"), the grouping of repeated parts joins them
@@ -196,6 +198,7 @@ def test_a_tables_four_legs_become_one_part():
     assert scores[True] >= 0.8 and scores[False] <= 0.3
 
 
+@pytest.mark.slow
 def test_the_field_is_the_same_whichever_cpu_backend_lifts(tmp_path):
     synthetic = generate_scene(preset("synth-small", gaussians=12_000, views=8, seed=3))
     guidance = oracle_views(synthetic, synthetic.hierarchy, OracleConfig(seed=3))

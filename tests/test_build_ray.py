@@ -26,6 +26,8 @@ def test_ray_must_be_connected_first():
         build_ray.ray_solve([])
 
 
+@pytest.mark.slow
+@pytest.mark.ray
 def test_ray_build_gives_the_in_process_bytes(small_dataset, tmp_path, capsys, monkeypatch):
     here, there = tmp_path / "here.thgs", tmp_path / "ray.thgs"
     code, _, err = run_cli(["build", str(small_dataset), "-o", str(here), *BLOCKS], capsys)

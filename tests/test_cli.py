@@ -59,6 +59,7 @@ def test_help_lists_info(capsys):
     assert code == 0 and "info" in out
 
 
+@pytest.mark.slow
 def test_console_script_on_bundled_sample():
     """The README's main job: the installed `thgs` on the sample shipped in examples/."""
     executable = shutil.which("thgs", path=str(Path(sys.executable).parent))
@@ -76,6 +77,7 @@ def test_console_script_on_bundled_sample():
     assert "1,000 (3DGS, SH degree 3" in result.stdout
 
 
+@pytest.mark.slow
 def test_build_writes_a_field_of_the_scene(small_dataset, tmp_path, capsys):
     from thgs import load_scene
     from thgs.field import load_field, scene_fingerprint
@@ -113,6 +115,7 @@ def test_build_writes_a_field_of_the_scene(small_dataset, tmp_path, capsys):
     assert not config["repeats"]["enabled"] and config["features"]["visibility_power"] == 2
 
 
+@pytest.mark.slow
 def test_build_gives_the_same_bytes_with_any_number_of_threads(small_dataset, tmp_path, capsys):
     # blocks of 1,000 Gaussians: the partition's solver processes run side by side
     blocks = ["--set", "superpoints.partition.block_size=1000"]
@@ -147,6 +150,7 @@ def test_build_names_missing_guidance(small_dataset, tmp_path, capsys):
     assert not (tmp_path / "f.thgs").exists()
 
 
+@pytest.mark.slow
 def test_demo_builds_queries_and_reports(tmp_path, capsys):
     out = tmp_path / "demo"
     argv = ["demo", "-o", str(out), "--cache", str(tmp_path / "cache")]
@@ -177,6 +181,7 @@ def test_demo_builds_queries_and_reports(tmp_path, capsys):
     assert json.loads((out / "report.json").read_text())["generated"] is False
 
 
+@pytest.mark.slow
 def test_console_script_demo(tmp_path):
     """The README's main job, reduced: the installed `thgs demo` on a small synthetic scene."""
     executable = shutil.which("thgs", path=str(Path(sys.executable).parent))
@@ -196,6 +201,7 @@ def test_console_script_demo(tmp_path):
     assert (tmp_path / "cache" / "synth-small-seed0-3000g-6v" / "synthetic.json").is_file()
 
 
+@pytest.mark.slow
 def test_query_prints_regions_and_writes_masks(small_dataset, small_field, tmp_path, capsys):
     import numpy as np
     from PIL import Image
@@ -287,6 +293,7 @@ def test_pick_reports_the_region_chain(small_dataset, small_field, tmp_path, cap
     assert code == 2 and "outside" in err
 
 
+@pytest.mark.slow
 def test_export_selection_regions_and_labels(small_dataset, small_field, tmp_path, capsys):
     import numpy as np
 
@@ -315,6 +322,7 @@ def test_export_selection_regions_and_labels(small_dataset, small_field, tmp_pat
     assert code == 2 and "nothing to export" in err
 
 
+@pytest.mark.slow
 def test_export_outputs_never_share_a_name(small_field, tmp_path, capsys):
     """A query named like the whole-scene PLY gets its own name; a set that cannot be written
     whole leaves none of its files."""
@@ -338,6 +346,7 @@ def test_export_outputs_never_share_a_name(small_field, tmp_path, capsys):
     assert sorted(path.name for path in blocked.iterdir()) == ["labels.npy"]
 
 
+@pytest.mark.slow
 def test_field_without_or_with_another_scene_is_refused(small_field, tmp_path, capsys):
     from dataclasses import replace
 
@@ -373,6 +382,7 @@ def test_field_without_or_with_another_scene_is_refused(small_field, tmp_path, c
     assert code == 2 and "--out" in err
 
 
+@pytest.mark.slow
 def test_eval_runs_every_protocol_of_a_synthetic_dataset(
     small_dataset, small_field, tmp_path, capsys
 ):
@@ -460,6 +470,7 @@ def test_eval_refuses_a_dataset_without_ground_truth(small_field, tmp_path, caps
     assert not list(tmp_path.glob("*.eval.json"))
 
 
+@pytest.mark.slow
 def test_bench_compares_variants_on_a_reduced_scene(tmp_path, capsys):
     out = tmp_path / "bench"
     argv = ["bench", "-o", str(out), "--presets", "synth-small", "--gaussians", "3000"]
@@ -562,6 +573,7 @@ def test_build_refuses_an_embedding_file_that_disagrees(small_dataset, tmp_path,
     assert code == 2 and err == f"error: --text-model: {tmp_path / 'nowhere'} is not a folder"
 
 
+@pytest.mark.slow
 def test_build_records_the_preprocess_text_model(small_dataset, tmp_path, capsys):
     from thgs.field import load_field
     from thgs.pipeline import recorded_config
@@ -688,6 +700,7 @@ def test_interrupts_and_system_errors_end_with_one_line(
     assert status == code and err.strip() == line and out == ""
 
 
+@pytest.mark.slow
 def test_interrupted_build_leaves_no_field(small_dataset, tmp_path, capsys, monkeypatch):
     import thgs.pipeline
 
@@ -764,6 +777,7 @@ def test_eval_checks_its_default_report_path_before_any_work(
     assert sorted(p.name for p in tmp_path.iterdir()) == ["f.eval.json", "f.thgs"]
 
 
+@pytest.mark.slow
 def test_eval_refuses_ground_truth_of_another_capture(small_dataset, small_field, tmp_path, capsys):
     other = tmp_path / "other"
     code, _, err = run(["synth", "synth-small", str(other), "--gaussians", "4000",
@@ -818,6 +832,7 @@ def test_label_sizes_and_camera_subsets():
     assert "no image in common" in camera_disagreement(cameras, renamed, subset=True)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "command",
     ["build", "query", "export", "pick", "eval", "synth", "demo"],
@@ -862,6 +877,7 @@ def _written(folder: Path) -> list[Path]:
     return [p for p in folder.rglob("*") if p.is_file() or p.name.startswith(".")]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("stage", ["generate", "build"])
 def test_ctrl_c_during_bench_leaves_no_report_and_no_half_dataset(
     stage, tmp_path, capsys, monkeypatch

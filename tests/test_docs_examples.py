@@ -71,6 +71,7 @@ def workspace(folder: Path, dataset: Path, field: Path) -> None:
             (folder / name).symlink_to(field)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("path", DOCS, ids=lambda p: p.name)
 def test_examples_run(path, small_dataset, small_field, tmp_path, monkeypatch):
     found = blocks(path)

@@ -173,6 +173,7 @@ def test_out_of_memory_is_one_line_not_a_traceback(small_dataset, tmp_path, caps
     assert "Traceback" not in err and not out.exists()
 
 
+@pytest.mark.slow
 def test_field_rebuilds_from_its_record_to_the_same_bytes(
     small_dataset, small_field, tmp_path, capsys
 ):

@@ -27,6 +27,7 @@ def gpu_check(*arguments: str, tmp_path: Path) -> subprocess.CompletedProcess:
     )
 
 
+@pytest.mark.slow
 def test_dry_run_reports_every_step(tmp_path):
     """The tiny run on the CPU: every step ran, gsplat's kernels are skipped for want of CUDA,
     the tests it runs passed, the toy scene was built and scored, and SAM's filter was set so
@@ -57,6 +58,7 @@ def test_dry_run_reports_every_step(tmp_path):
     assert all(r["masks_to_clip"] == 3 for r in runs)
 
 
+@pytest.mark.slow
 def test_deadline_skips_what_would_not_fit(tmp_path):
     """No time left: every step past the environment is skipped and says how long it needs."""
     out = tmp_path / "report.json"
@@ -73,6 +75,7 @@ def test_deadline_skips_what_would_not_fit(tmp_path):
         assert steps[name]["why"].endswith("s needed"), steps[name]
 
 
+@pytest.mark.slow
 def test_bad_arguments_are_refused(tmp_path):
     run = gpu_check("--fast", tmp_path=tmp_path)
     assert run.returncode == 2 and "unknown argument --fast" in run.stderr
@@ -87,6 +90,7 @@ def test_bad_arguments_are_refused(tmp_path):
     assert not Path(out).exists()
 
 
+@pytest.mark.slow
 def test_full_size_models_have_the_published_sizes():
     """Built on the meta device (no memory): SAM ViT-H has 641M parameters (the published
     sam_vit_h), SAM 2.1 Hiera-L 224M with the video memory that Sam2Model leaves out (~217M)."""
@@ -104,6 +108,7 @@ def test_full_size_models_have_the_published_sizes():
     assert 212 < millions[1] < 224
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has CUDA")
 def test_full_size_without_cuda_says_so(tmp_path):
     """The full sizes on a machine without CUDA: every GPU step is skipped, saying why."""

@@ -181,6 +181,7 @@ def test_missing_scene_is_said_and_build_names_source(examples, capsys):
     assert "data/kitchen" in err and "--source" in err
 
 
+@pytest.mark.slow
 def test_build_from_a_gsplat_result_folder_with_no_flags(small_dataset, tmp_path, monkeypatch):
     """The synthetic dataset as gsplat's examples hold a trained scene::
 

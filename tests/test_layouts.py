@@ -159,6 +159,7 @@ def test_no_cfg_args_or_no_source_path(tmp_path):
 # the commands on the real layouts, with no extra flags
 
 
+@pytest.mark.slow
 def test_build_and_eval_on_the_real_layouts_with_no_flags(
     small_dataset, tmp_path, monkeypatch, capsys
 ):

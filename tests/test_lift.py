@@ -228,6 +228,7 @@ def test_compiled_latent_decision_equals_the_full_scan(synthetic_view, code_dim,
     assert bool((compiled >= 0).any())
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method", METHODS)
 def test_views_in_parallel_equal_views_one_by_one(method):
     scene = generate_scene(

@@ -37,6 +37,7 @@ def same_lifts(a, b):
             assert u.dtype == v.dtype and torch.equal(u, v), name
 
 
+@pytest.mark.slow
 def test_a_hit_is_the_computed_lift_and_the_same_field(inputs, tmp_path, caplog):
     scene, guidance = inputs
     config = FieldConfig()
@@ -105,6 +106,7 @@ def rewrite_tensor(path, name, change, checksum=False):
     path.write_bytes(bytes(data))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "damage",
     [
@@ -148,6 +150,7 @@ def test_a_broken_or_foreign_file_is_lifted_again(inputs, tmp_path, caplog, dama
     assert read_cached_lift(path, key, len(guidance)) is not None  # rewritten whole
 
 
+@pytest.mark.slow
 def test_build_reuses_the_lift_from_the_command_line(small_dataset, tmp_path, capsys):
     cache = tmp_path / "lifts"
     first, second = tmp_path / "a.thgs", tmp_path / "b.thgs"

@@ -53,6 +53,7 @@ def test_views_come_back_bit_for_bit():
     store.close()
 
 
+@pytest.mark.slow
 def test_the_lift_moves_to_the_file_past_its_budget_and_the_field_is_the_same(inputs, caplog):  # noqa: F811
     scene, guidance = inputs
     config = FieldConfig()

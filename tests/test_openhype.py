@@ -553,6 +553,7 @@ def test_the_layout_is_a_preprocessed_scannetpp_scene(layout, small_dataset):
         )
 
 
+@pytest.mark.slow
 def test_the_ground_truth_selection_scores_high_and_a_wrong_one_low(layout, small_dataset):
     data = layout / "scannetpp" / SCENE
     scene = load_scene(layout / "output" / SCENE)
@@ -601,6 +602,7 @@ def test_the_ground_truth_selection_scores_high_and_a_wrong_one_low(layout, smal
     assert wrong.metrics["miou"] < 0.2
 
 
+@pytest.mark.slow
 def test_the_suite_finds_the_layout_and_runs_the_protocol(layout, small_dataset, tmp_path):
     (scene,) = find_suite(layout)
     assert (scene.key, scene.protocols, scene.problems) == (f"openhype/{SCENE}", ("openhype",), ())

@@ -172,6 +172,7 @@ def _third_party_imports() -> list[tuple[str, int, str, bool]]:
     return found
 
 
+@pytest.mark.slow
 def test_every_imported_module_is_declared(metadata):
     """A module-level import needs a core dependency; one inside a function may be an extra.
     (The dev environment has every extra, so every module resolves to its distribution.)"""

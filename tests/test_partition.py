@@ -125,6 +125,7 @@ def test_min_comp_weight_is_respected():
         assert np.bincount(labels).min() >= minimum
 
 
+@pytest.mark.slow
 def test_superpoints_are_connected_contiguous_and_deterministic():
     gaussians = noisy_plane(seed=4)
     graph = knn_graph(gaussians)
@@ -236,6 +237,7 @@ def test_presets_and_config_checks():
             PartitionConfig(**bad)
 
 
+@pytest.mark.slow
 def test_more_split_alternatives_keep_a_flat_object_off_the_table_top():
     """synth-small seed 0: a stack of books lies flat on the table top in another colour. With
     the solver's 2 alternatives the table top's splits follow position and a book stays in the
@@ -427,6 +429,7 @@ def test_blocks_join_into_the_whole_pieces():
     np.testing.assert_array_equal(labels, truth)
 
 
+@pytest.mark.slow
 def test_the_result_does_not_depend_on_the_number_of_workers():
     gaussians = noisy_plane(n=6000, seed=3)
     graph = knn_graph(gaussians)

@@ -91,6 +91,7 @@ def plane():
     return plane_scene()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_reweighting_raises_purity_on_noisy_guidance(plane, seed):
     # measured over oracle seeds 0–7 at its default severity 0.5 (docs/partition.md): no
@@ -110,6 +111,7 @@ def test_reweighting_raises_purity_on_noisy_guidance(plane, seed):
     assert report.superpoints <= 16 and report.voted_edges > 0.9 * report.edges
 
 
+@pytest.mark.slow
 def test_partition_scene_is_deterministic_and_reports(plane):
     scene, hierarchy = plane
     guidance = oracle_views(scene, hierarchy, OracleConfig(seed=3))
@@ -124,6 +126,7 @@ def test_partition_scene_is_deterministic_and_reports(plane):
     assert any("superpoints" in line for line in report.lines())
 
 
+@pytest.mark.slow
 def test_synthetic_scene_superpoints_are_pure_and_coarse():
     # a reduced synth-small (20k Gaussians, 12 views) with the oracle's default faults
     synthetic = generate_scene(preset("synth-small", gaussians=20_000, views=12))
@@ -137,6 +140,7 @@ def test_synthetic_scene_superpoints_are_pure_and_coarse():
 # --- bad input ---------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method", ["latent", "exact"])
 def test_views_without_masks_give_a_geometric_partition(plane, caplog, method):
     scene, _ = plane

@@ -246,6 +246,7 @@ def _as_set(masks) -> set[bytes]:
     return {np.packbits(np.asarray(mask, dtype=bool)).tobytes() for mask in masks}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("crop_layers", [0, 1])
 def test_generator_recovers_known_masks_at_every_level(crop_layers):
     image, expected = _labelled_scene()
@@ -297,6 +298,7 @@ def clip(models) -> CLIPImageEncoder:
     return CLIPImageEncoder(CLIP_SPACE, models["clip"])
 
 
+@pytest.mark.slow
 def test_preprocess_image_writes_langsplat_ids_and_features(clip):
     image, expected = _labelled_scene()
     config = PreprocessConfig(masks=MaskGeneratorConfig(points_per_side=16, crop_layers=0))
@@ -403,6 +405,7 @@ def test_default_thresholds_on_random_models_write_all_minus_one(tmp_path, model
     assert np.load(output / "frame_000_f.npy").shape == (0, 16)
 
 
+@pytest.mark.slow
 def test_a_crash_mid_write_resumes_to_identical_results(tmp_path, models, clip, monkeypatch):
     images = _image_folder(tmp_path)
     segmenter = PointSegmenter("tiny", models["sam"])

@@ -118,6 +118,7 @@ def local_ray():
     assert not ray.is_initialized()
 
 
+@pytest.mark.slow
 def test_ray_writes_the_in_process_files_byte_for_byte(scenes, models, local_ray):
     assert (local_ray.address, local_ray.started, local_ray.cpus) == ("local", True, 2.0)
     seen = []
@@ -148,6 +149,7 @@ def test_ray_writes_the_in_process_files_byte_for_byte(scenes, models, local_ray
         assert summary.masks == tuple(counts) and sum(counts) > 0 and summary.skipped == []
 
 
+@pytest.mark.slow
 def test_ray_resumes_and_skips_finished_views(scenes, models, local_ray):
     targets = _targets(scenes, "resumed")
     # scene a's first two views finished in an earlier, in-process run
@@ -174,6 +176,7 @@ def test_ray_resumes_and_skips_finished_views(scenes, models, local_ray):
     assert [len(summary.skipped) for summary in again] == [3, 2]
 
 
+@pytest.mark.slow
 def test_an_unreadable_image_is_named_and_the_others_are_done(tmp_path, scenes, models, local_ray):
     for name in ("a", "b"):
         shutil.copytree(scenes / name / "images", tmp_path / name / "images")
@@ -195,6 +198,7 @@ def test_an_unreadable_image_is_named_and_the_others_are_done(tmp_path, scenes, 
     ]
 
 
+@pytest.mark.slow
 def test_other_settings_are_refused_before_any_work(scenes, models, local_ray):
     other = PreprocessConfig(masks=MaskGeneratorConfig(points_per_side=8))
     with pytest.raises(InputError, match=r"preprocess\.json: this folder was preprocessed with"):

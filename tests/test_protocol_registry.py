@@ -71,6 +71,7 @@ def test_sources_find_a_synthetic_datasets_ground_truth(small_dataset):
         find_ground_truth(small_dataset, labels=small_dataset)
 
 
+@pytest.mark.slow
 def test_a_registered_protocol_runs_everywhere(toy, small_dataset, small_field, tmp_path, capsys):
     dataset = tmp_path / "toyset"
     dataset.mkdir()

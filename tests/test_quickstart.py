@@ -12,6 +12,8 @@ import shutil
 import subprocess
 from pathlib import Path
 
+import pytest
+
 import thgs.cli
 from conftest import run_cli as run
 from thgs.field import load_field
@@ -90,6 +92,7 @@ def test_the_block_is_found_and_complete():
     assert steps == ["synth", "info", "build", "query", "eval"]
 
 
+@pytest.mark.slow
 def test_the_synthetic_block_runs_on_the_real_layout(small_dataset, tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
     outputs = {}

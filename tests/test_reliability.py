@@ -134,6 +134,7 @@ def test_damaged_ply_files(samples, tmp_path, data):
     _check(read_ply, path, "scene.ply")
 
 
+@pytest.mark.slow
 @SETTINGS
 @given(data=st.data())
 def test_damaged_lerf_label_files(samples, tmp_path, data):

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import re
 
+import pytest
+
 from conftest import REPO
 
 
@@ -29,6 +31,7 @@ def test_ci_runs_the_readme_test_command():
     assert tests in ci.splitlines()
 
 
+@pytest.mark.slow
 def test_setup_script_second_run_changes_nothing():
     """scripts/setup.sh is idempotent: on the environment it made, it returns at once."""
     import subprocess

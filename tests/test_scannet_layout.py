@@ -85,6 +85,7 @@ def test_the_layout_loads_with_no_flags(layout, small_dataset, monkeypatch):
     assert truth.path("scannet") == data / f"{SCENE}_vh_clean_2.labels.ply"
 
 
+@pytest.mark.slow
 def test_build_and_eval_score_as_on_the_synthetic_dataset(
     layout, small_dataset, small_field, monkeypatch, capsys
 ):

@@ -269,6 +269,7 @@ def test_a_view_without_masks_has_no_features():
     assert mask_contexts(empty, 0, np.full((3, 4, 4), -1), None, 3) == ()  # type: ignore[arg-type]
 
 
+@pytest.mark.slow
 def test_the_selection_benchmark_builds_the_field_thgs_synth_and_build_give(tmp_path):
     """benchmarks/bench_selection.py makes each stand-in's features again on the masks of one
     name-perfect dataset and reuses its lift and merging: the regions and features must be those

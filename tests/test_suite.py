@@ -133,6 +133,7 @@ def test_select_picks_benchmarks_keys_and_names(suite_root):
     )
 
 
+@pytest.mark.slow
 def test_in_process_and_ray_reports_are_identical(in_process, on_ray):
     out, code = in_process
     assert code == 0
@@ -147,6 +148,7 @@ def test_in_process_and_ray_reports_are_identical(in_process, on_ray):
         ).read_bytes()
 
 
+@pytest.mark.slow
 def test_each_number_is_thgs_eval_by_hand(in_process, suite_root, tmp_path, capsys):
     out, _ = in_process
     document = json.loads((out / "report.json").read_text())
@@ -179,6 +181,7 @@ def test_each_number_is_thgs_eval_by_hand(in_process, suite_root, tmp_path, caps
     assert "## Times (s): field building by stage, preprocessing, evaluation" in markdown
 
 
+@pytest.mark.slow
 def test_resume_skips_what_is_current(in_process, suite_root, capsys):
     out, _ = in_process
     before = _comparable(out / "report.json")
@@ -226,6 +229,7 @@ def test_resume_skips_what_is_current(in_process, suite_root, capsys):
     assert field.read_bytes() == whole and _comparable(out / "report.json") == before
 
 
+@pytest.mark.slow
 def test_dry_run_prints_the_plan_and_writes_nothing(in_process, suite_root, tmp_path, capsys):
     out, _ = in_process
     code, printed, err = run(["suite", str(suite_root), "-o", str(out), "--dry-run"], capsys)
@@ -238,6 +242,7 @@ def test_dry_run_prints_the_plan_and_writes_nothing(in_process, suite_root, tmp_
     assert not fresh.exists()
 
 
+@pytest.mark.slow
 def test_a_kill_mid_suite_resumes_past_the_finished_scenes(
     small_dataset, tmp_path, monkeypatch, capsys
 ):
@@ -272,6 +277,7 @@ def test_a_kill_mid_suite_resumes_past_the_finished_scenes(
     assert stages["3dovs/c"] == {"preprocess": "not needed", "build": "ran", "eval": "ran"}
 
 
+@pytest.mark.slow
 def test_broken_and_incomplete_scenes_are_reported_and_the_rest_complete(
     small_dataset, tmp_path, capsys
 ):
@@ -350,7 +356,8 @@ def models(tmp_path_factory):
     return {"sam": tiny_models.tiny_sam(root / "sam"), "clip": tiny_models.tiny_clip(root / "clip")}
 
 
-@pytest.mark.parametrize("executor", ["in-process", "ray"])
+@pytest.mark.slow
+@pytest.mark.parametrize("executor", ["in-process", pytest.param("ray", marks=pytest.mark.ray)])
 def test_a_scene_without_features_is_preprocessed_into_the_output(
     small_dataset, tmp_path, models, executor, request, monkeypatch
 ):
@@ -406,6 +413,7 @@ def test_a_scene_without_features_is_preprocessed_into_the_output(
     assert again.scenes[0].stages == dict.fromkeys(("preprocess", "build", "eval"), "current")
 
 
+@pytest.mark.slow
 def test_an_unreadable_image_on_ray_fails_its_scene_only(
     small_dataset, tmp_path, models, local_ray
 ):

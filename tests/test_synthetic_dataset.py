@@ -206,6 +206,7 @@ class _FailingEncoder:
         raise RuntimeError("encoder broke")
 
 
+@pytest.mark.slow
 def test_cli_synth_writes_a_loadable_dataset(tmp_path, capsys, encoder):
     out = tmp_path / "cli"
     argv = ["synth", "synth-small", str(out), "--gaussians", "4000", "--views", "2"]
@@ -330,6 +331,7 @@ write_dataset(sys.argv[2], scene, encoder, oracle=oracle, config=dataset, progre
 """
 
 
+@pytest.mark.slow
 def test_modes_follow_the_umask_and_a_killed_run_is_cleaned_by_the_next(
     dataset, tmp_path, scene, encoder
 ):
@@ -387,6 +389,7 @@ def test_3dovs_slivers_are_not_labelled_and_absent_classes_are_empty(tmp_path, s
     assert masks["b"].sum() == 10 and not masks["c"].any()
 
 
+@pytest.mark.slow
 def test_an_older_cached_dataset_is_written_again(tmp_path, encoder):
     folder, generated = synthetic_dataset(tmp_path, "synth-small", 3, 3000, 3, encoder)
     assert generated and is_current_dataset(folder)

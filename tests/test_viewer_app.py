@@ -37,6 +37,7 @@ def _press(button) -> None:
     button.value = True  # what a click from a browser does; callbacks run with no client
 
 
+@pytest.mark.slow
 def test_search_colours_only_the_chunks_that_change(small_field):
     from thgs.viewer.state import ViewerConfig
 
@@ -166,6 +167,7 @@ def test_an_unwritable_export_folder_is_reported_and_the_server_keeps_running(ap
     assert (tmp_path / "exports" / "mug.ply").is_file()
 
 
+@pytest.mark.slow
 def test_a_field_of_another_scene_is_reported_and_another_field_can_be_opened(
     small_field, tmp_path
 ):
@@ -228,6 +230,7 @@ def _ended(process: subprocess.Popen) -> tuple[str, str]:
         pytest.fail(f"the viewer did not stop within 120 s after Ctrl-C; its threads:\n{err}")
 
 
+@pytest.mark.slow
 def test_thgs_view_serves_until_interrupted(small_field):
     with socket.socket() as probe:
         probe.bind(("127.0.0.1", 0))

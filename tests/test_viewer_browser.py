@@ -89,6 +89,8 @@ def _settled(page, path: Path, *, differs_from: np.ndarray | None = None) -> np.
     return current
 
 
+@pytest.mark.slow
+@pytest.mark.browser
 def test_query_click_and_climb_in_headless_chromium(browser, small_field):
     app = start_viewer(small_field, host="127.0.0.1", port=0)
     artifacts = _artifacts()

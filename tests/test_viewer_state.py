@@ -114,6 +114,7 @@ def test_click_pixels_and_viewport_sizes():
 # Queries ------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("mode", "expected"),
     [
