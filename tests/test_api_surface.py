@@ -163,6 +163,77 @@ def test_the_rule_catches_what_it_should(tmp_path):
     assert private_attribute_uses(package) == ["thgs/eval/reach.py:2: ._level"]
 
 
+def import_graph(root: Path = SOURCE) -> dict[str, set[str]]:
+    """Module → the modules of the package it imports, anywhere in its body (at the top, in a
+    function, under ``TYPE_CHECKING``): ``from a.b import c`` imports ``a.b``, and ``a.b.c``
+    too where that is a module; relative imports resolved."""
+    paths = {_module_name(path, root): path for path in sorted(root.rglob("*.py"))}
+    graph: dict[str, set[str]] = {}
+    for module, path in paths.items():
+        package = _package_of(module, path.name == "__init__.py")
+        imported: set[str] = set()
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.Import):
+                imported.update(alias.name for alias in node.names)
+            elif isinstance(node, ast.ImportFrom):
+                base = node.module or ""
+                if node.level:
+                    parts = package.split(".")
+                    parts = parts[: len(parts) - node.level + 1]
+                    base = ".".join([*parts, base] if base else parts)
+                imported.add(base)
+                imported.update(f"{base}.{alias.name}" for alias in node.names)
+        graph[module] = {name for name in imported if name in paths and name != module}
+    return graph
+
+
+def import_cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected groups of more than one module (Tarjan), each sorted."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    cycles = []
+
+    def visit(module: str) -> None:
+        index[module] = low[module] = len(index)
+        stack.append(module)
+        for other in sorted(graph[module]):
+            if other not in index:
+                visit(other)
+                low[module] = min(low[module], low[other])
+            elif other in stack:
+                low[module] = min(low[module], index[other])
+        if low[module] == index[module]:
+            group = []
+            while not group or group[-1] != module:
+                group.append(stack.pop())
+            if len(group) > 1:
+                cycles.append(sorted(group))
+
+    for module in sorted(graph):
+        if module not in index:
+            visit(module)
+    return cycles
+
+
+def test_no_import_cycle():
+    assert import_cycles(import_graph()) == []
+
+
+def test_the_cycle_check_finds_a_lazy_cycle(tmp_path):
+    package = tmp_path / "thgs"
+    (package / "suite").mkdir(parents=True)
+    (package / "__init__.py").write_text("")
+    (package / "suite" / "__init__.py").write_text("from .run import go\n")
+    (package / "suite" / "run.py").write_text("def go():\n    from thgs.suite import report\n")
+    (package / "suite" / "report.py").write_text("from thgs.suite.run import go\n")
+    (package / "alone.py").write_text("import thgs.suite.report\n")
+    graph = import_graph(package)
+    assert graph["thgs.suite.run"] == {"thgs.suite", "thgs.suite.report"}
+    assert graph["thgs.suite"] == {"thgs.suite.run"}
+    assert import_cycles(graph) == [["thgs.suite", "thgs.suite.report", "thgs.suite.run"]]
+
+
 if __name__ == "__main__":
     PINNED.write_text(json.dumps(current_surface(), indent=1) + "\n", encoding="utf-8")
     print(f"wrote {PINNED}", file=sys.stderr)

@@ -9,10 +9,15 @@ folder, preprocessed, built and evaluated where needed, and one report in the pa
 """
 
 from thgs.suite.discover import BENCHMARK_PROTOCOLS, BENCHMARKS, SuiteScene, find_suite
-from thgs.suite.report import HEADLINES, SuiteReport, build_stage_group, write_suite_report
+from thgs.suite.report import (
+    HEADLINES,
+    SceneResult,
+    SuiteReport,
+    build_stage_group,
+    write_suite_report,
+)
 from thgs.suite.run import (
     STAGES,
-    SceneResult,
     StagePlan,
     SuiteConfig,
     plan_scene,

@@ -33,11 +33,52 @@ from typing import Any
 from thgs._atomic import atomic_output
 from thgs.export import write_json
 from thgs.suite.discover import BENCHMARKS
-from thgs.suite.run import SceneResult
 
-__all__ = ["HEADLINES", "SuiteReport", "build_stage_group", "write_suite_report"]
+__all__ = [
+    "HEADLINES",
+    "SceneResult",
+    "SuiteReport",
+    "build_stage_group",
+    "write_suite_report",
+]
 
 logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class SceneResult:
+    """What became of one scene.
+
+    Attributes:
+        benchmark, name: the scene.
+        stages: stage → ``"ran"``, ``"current"``, ``"not needed"``, ``"failed"`` or
+            ``"not run"``.
+        metrics: result name (``lerf``, ``lerf-paper``, ``3dovs``, ``scannet-19`` …) → metric →
+            value in [0, 1] (None where a protocol gives none), from ``eval.json``.
+        regions: the field's region counts at levels 0–3.
+        build_seconds: the field's build time per stage (``lift``, ``knn`` …), as recorded
+            when it was built.
+        seconds: wall time per stage (preprocess, build, eval), as recorded when it ran.
+        error: the one-line reason a failed scene failed; None when it succeeded.
+    """
+
+    benchmark: str
+    name: str
+    stages: dict[str, str]
+    metrics: dict[str, dict[str, float | None]] = field(default_factory=dict)
+    regions: tuple[int, ...] = ()
+    build_seconds: dict[str, float] = field(default_factory=dict)
+    seconds: dict[str, float] = field(default_factory=dict)
+    error: str | None = None
+
+    @property
+    def key(self) -> str:
+        return f"{self.benchmark}/{self.name}"
+
+    @property
+    def ok(self) -> bool:
+        return self.error is None
+
 
 HEADLINES: dict[str, tuple[tuple[str, str, str], ...]] = {
     "lerf_ovs": (

@@ -47,11 +47,11 @@ from thgs.guidance.preprocess.run import PreprocessConfig
 from thgs.guidance.preprocess.sam import DEFAULT_SAM
 from thgs.pipeline import PRESETS, FieldConfig
 from thgs.suite.discover import SuiteScene
+from thgs.suite.report import SceneResult, SuiteReport
 from thgs.text import LANGSPLAT_SPACE
 
 __all__ = [
     "STAGES",
-    "SceneResult",
     "StagePlan",
     "SuiteConfig",
     "plan_scene",
@@ -174,41 +174,6 @@ class StagePlan:
     stage: str
     action: Literal["run", "current", "not needed"]
     reason: str
-
-
-@dataclass(frozen=True)
-class SceneResult:
-    """What became of one scene.
-
-    Attributes:
-        benchmark, name: the scene.
-        stages: stage → ``"ran"``, ``"current"``, ``"not needed"``, ``"failed"`` or
-            ``"not run"``.
-        metrics: result name (``lerf``, ``lerf-paper``, ``3dovs``, ``scannet-19`` …) → metric →
-            value in [0, 1] (None where a protocol gives none), from ``eval.json``.
-        regions: the field's region counts at levels 0–3.
-        build_seconds: the field's build time per stage (``lift``, ``knn`` …), as recorded
-            when it was built.
-        seconds: wall time per stage (preprocess, build, eval), as recorded when it ran.
-        error: the one-line reason a failed scene failed; None when it succeeded.
-    """
-
-    benchmark: str
-    name: str
-    stages: dict[str, str]
-    metrics: dict[str, dict[str, float | None]] = field(default_factory=dict)
-    regions: tuple[int, ...] = ()
-    build_seconds: dict[str, float] = field(default_factory=dict)
-    seconds: dict[str, float] = field(default_factory=dict)
-    error: str | None = None
-
-    @property
-    def key(self) -> str:
-        return f"{self.benchmark}/{self.name}"
-
-    @property
-    def ok(self) -> bool:
-        return self.error is None
 
 
 def scene_folder(out: str | os.PathLike[str], scene: SuiteScene) -> Path:
@@ -729,8 +694,6 @@ def run_suite(
         ThgsError: Ray is wanted but missing, or its cluster does not answer.
         KeyboardInterrupt: passed on; every output is whole or absent, the suite resumable.
     """
-    from thgs.suite.report import SuiteReport
-
     config.check()
     out = Path(out)
     started = time.perf_counter()
