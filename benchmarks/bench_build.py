@@ -33,7 +33,7 @@ from bench_render import present_devices
 from thgs.device import resolve_device
 from thgs.errors import InputError
 from thgs.eval import matched_miou, purity
-from thgs.pipeline import FieldConfig, build_field
+from thgs.pipeline import FieldConfig, build_field, chosen_field_config
 from thgs.render import BACKENDS, RasterConfig, resolve_backend
 from thgs.synthetic import OracleConfig, generate_scene, preset
 from thgs.text import MiniLMEncoder
@@ -84,7 +84,7 @@ def _variants(args: argparse.Namespace) -> dict[str, tuple[FieldConfig, torch.de
             if args.runs:
                 raise
             continue
-        config = FieldConfig.lerf().with_settings(args.set)
+        config = chosen_field_config(settings=args.set)
         lift = replace(config.superpoints.lift, raster=raster)
         config = replace(config, superpoints=replace(config.superpoints, lift=lift))
         variants[f"ours {backend} {device}"] = (config, device)

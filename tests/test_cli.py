@@ -1045,3 +1045,29 @@ def test_ctrl_c_while_the_command_starts_is_an_interruption():
     )
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert (done.returncode, done.stderr) == (130, "error: interrupted\n")
+
+
+def test_a_repeated_list_option_keeps_every_value():
+    from thgs.cli import COMMANDS, joined_list_options, list_options
+
+    assert list_options(COMMANDS["build"]) == {"--set"}
+    assert list_options(COMMANDS["pick"]) == set()  # --pixel X Y has two values, always
+    argv = ["build", "S", "--set", "a=1", "-o", "x", "--set", "b=2", "c=3", "--verbose"]
+    assert joined_list_options(argv) == [
+        *("build", "S", "--set", "a=1", "b=2", "c=3", "-o", "x", "--verbose")
+    ]
+    assert joined_list_options(["build", "S", "--set=a=1", "--set", "b=2"]) == [
+        *("build", "S", "--set", "a=1", "b=2")
+    ]
+    argv = ["suite", "R", "--select", "x", "--ray", "local", "--select", "y", "-h"]
+    assert joined_list_options(argv) == [
+        *("suite", "R", "--select", "x", "y", "--ray", "local", "-h")
+    ]
+    argv = ["query", "F", "a mug", "--views", "v1", "--views", "v2"]
+    assert joined_list_options(argv) == ["query", "F", "a mug", "--views", "v1", "v2"]
+    assert joined_list_options(["pick", "F", "--pixel", "1", "2"]) == [
+        *("pick", "F", "--pixel", "1", "2")
+    ]
+    assert joined_list_options(["nope", "--set", "a", "--set", "b"]) == [
+        *("nope", "--set", "a", "--set", "b")
+    ]

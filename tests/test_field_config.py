@@ -26,6 +26,7 @@ from thgs.hierarchy import MergeConfig
 from thgs.pipeline import (
     PRESETS,
     FieldConfig,
+    chosen_field_config,
     lifted_raster,
     read_field_config,
     recorded_config,
@@ -205,7 +206,7 @@ def test_field_rebuilds_from_its_record_to_the_same_bytes(
          "--preset", "lerf"],
         capsys,
     )  # fmt: skip
-    assert code == 2 and "either --preset or --config" in err
+    assert code == 2 and "--preset: 'lerf' and --config both give every setting; pass one" in err
     assert not (tmp_path / "x.thgs").exists()
 
 
@@ -323,3 +324,56 @@ def test_a_field_recorded_with_the_solver_thread_count_and_no_blocks_reads(small
     assert recorded_config(older).superpoints.partition == dataclasses.replace(
         recorded, block_size=0
     )
+
+
+def test_the_chosen_config_names_each_setting_once():
+    assert chosen_field_config() == FieldConfig.lerf()
+    assert chosen_field_config("3dovs") == FieldConfig.three_dovs()
+    tuned = FieldConfig.lerf().with_settings(["merge.rounds=3"])
+    assert chosen_field_config(config=tuned) == tuned
+    # the authors' behaviour first, then --set: an explicit setting wins over --reference
+    chosen = chosen_field_config(settings=["merge.rounds=5"], reference=True)
+    assert chosen.merge.rounds == 5 and chosen.merge.two_hop_weight == 1.0
+    assert chosen == dataclasses.replace(
+        FieldConfig.lerf().as_reference(),
+        merge=dataclasses.replace(FieldConfig.lerf().as_reference().merge, rounds=5),
+    )
+    assert not chosen_field_config(repeated_parts=False).repeats.enabled
+    assert chosen_field_config(settings=[" repeats.enabled = false"]).repeats.enabled is False
+
+
+@pytest.mark.parametrize(
+    ("arguments", "message"),
+    [
+        (
+            {"settings": ["merge.rounds=2", "merge.rounds=3"]},
+            "--set: names merge.rounds twice ('merge.rounds=2' and 'merge.rounds=3'); keep one",
+        ),
+        (
+            {"settings": ["repeats.enabled=true"], "repeated_parts": False},
+            "--no-repeated-parts: and --set 'repeats.enabled=true' both name repeats.enabled; "
+            "keep one",
+        ),
+        (
+            {"preset": "3dovs", "config": FieldConfig()},
+            "--preset: '3dovs' and --config both give every setting; pass one",
+        ),
+        ({"preset": "lerff"}, "--preset: unknown 'lerff'; choose from lerf, 3dovs"),
+    ],
+)
+def test_a_setting_named_twice_is_refused_naming_both(arguments, message):
+    with pytest.raises(InputError) as caught:
+        chosen_field_config(**arguments)
+    assert str(caught.value) == message
+
+
+def test_build_and_suite_refuse_a_setting_named_twice(small_dataset, tmp_path, capsys):
+    out = tmp_path / "f.thgs"
+    argv = ["build", str(small_dataset), "-o", str(out), "--no-repeated-parts"]
+    code, _, err = run([*argv, "--set", "repeats.enabled=true"], capsys)
+    assert code == 2 and "--no-repeated-parts: and --set 'repeats.enabled=true'" in err
+    assert not out.exists()
+    argv = ["suite", str(tmp_path), "-o", str(tmp_path / "o"), "--set", "merge.rounds=2"]
+    code, _, err = run([*argv, "--set", "merge.rounds=3"], capsys)
+    assert code == 2 and "--set: names merge.rounds twice" in err
+    assert not (tmp_path / "o").exists()

@@ -64,6 +64,7 @@ __all__ = [
     "SuperpointConfig",
     "build_field",
     "build_levels",
+    "chosen_field_config",
     "describe_levels",
     "lift_scene",
     "lifted_raster",
@@ -623,6 +624,49 @@ PRESETS: dict[str, Callable[[], FieldConfig]] = {
     "3dovs": FieldConfig.three_dovs,
 }
 """The named presets of ``thgs build --preset``."""
+
+
+def chosen_field_config(
+    preset: str | None = None,
+    config: FieldConfig | None = None,
+    settings: Sequence[str] = (),
+    *,
+    reference: bool = False,
+    repeated_parts: bool = True,
+) -> FieldConfig:
+    """The field config a build asks for, each setting named once: the preset (default
+    ``lerf``) or a whole ``config``; then the authors' behaviour (``reference``); then
+    ``repeated_parts`` False (no grouping of repeated parts); then the ``"dotted.key=VALUE"``
+    ``settings`` (:meth:`FieldConfig.with_settings`), which therefore win over ``reference``.
+    What ``thgs build``, ``thgs suite`` and ``thgs bench`` build with.
+
+    Raises:
+        InputError: an unknown preset; a preset and a config; a setting named twice (twice in
+            ``settings``, or ``repeats.enabled`` with ``repeated_parts`` False), naming both.
+    """
+    if preset is not None and config is not None:
+        raise InputError("--preset", f"{preset!r} and --config both give every setting; pass one")
+    if preset is not None and preset not in PRESETS:
+        raise InputError("--preset", f"unknown {preset!r}; choose from {', '.join(PRESETS)}")
+    named: dict[str, str] = {}
+    for assignment in settings:
+        key = assignment.partition("=")[0].strip()
+        if key in named:
+            raise InputError(
+                "--set", f"names {key} twice ({named[key]!r} and {assignment!r}); keep one"
+            )
+        named[key] = assignment
+    if not repeated_parts and "repeats.enabled" in named:
+        raise InputError(
+            "--no-repeated-parts",
+            f"and --set {named['repeats.enabled']!r} both name repeats.enabled; keep one",
+        )
+    chosen = config if config is not None else PRESETS[preset or "lerf"]()
+    if reference:
+        chosen = chosen.as_reference()
+    if not repeated_parts:
+        chosen = replace(chosen, repeats=replace(chosen.repeats, enabled=False))
+    return chosen.with_settings(list(named.values()))
 
 
 @dataclass(frozen=True, eq=False)

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import contextlib
 import math
-from dataclasses import replace
 from pathlib import Path
 from typing import Annotated, Literal
 
@@ -13,7 +12,7 @@ from rich.table import Table
 
 from thgs.cli._console import StageBars, setup_logging, stage_progress, stdout, warn
 from thgs.cli._outputs import check_output_file, check_output_folder
-from thgs.errors import InputError, ThgsError
+from thgs.errors import InputError
 from thgs.scene import Scene, load_scene
 
 __all__ = ["build", "demo"]
@@ -90,7 +89,8 @@ def build(
             field exactly as it was built.
         set: change single settings, e.g. --set merge.min_region_gaussians=30
             superpoints.lift.raster.backend=torch (dotted names as in the config; values are
-            JSON, or text); every setting of every stage is reachable (docs/build.md).
+            JSON, or text); every setting of every stage is reachable (docs/build.md). Applied
+            after --preset or --config and --reference; naming a setting twice is an error.
         source: the training data folder (COLMAP sparse/0 or transforms.json, images/,
             language_features/) or a camera file; decides over the model's cfg_args (or
             gsplat's cfg.yml) and cameras.json.
@@ -135,7 +135,7 @@ def build(
         read_embedding_model,
         read_embedding_space,
     )
-    from thgs.pipeline import PRESETS, build_field, read_field_config
+    from thgs.pipeline import build_field, chosen_field_config, read_field_config
 
     setup_logging(verbose)
     check_output_file(out)
@@ -143,14 +143,13 @@ def build(
         raise InputError("--lift-cache", f"{lift_cache} is a file; name a folder to keep lifts in")
     if threads is not None:
         set_cpu_threads(threads, "--threads")
-    if config is not None and preset is not None:
-        raise ThgsError("pass either --preset or --config, not both")
-    settings = read_field_config(config) if config is not None else PRESETS[preset or "lerf"]()
-    settings = settings.with_settings(set)
-    if reference:
-        settings = settings.as_reference()
-    if not repeated_parts:
-        settings = replace(settings, repeats=replace(settings.repeats, enabled=False))
+    settings = chosen_field_config(
+        preset,
+        read_field_config(config) if config is not None else None,
+        set,
+        reference=reference,
+        repeated_parts=repeated_parts,
+    )
     loaded = load_scene(scene, source=source, iteration=iteration, images=images, scale=scale)
     if loaded.cameras is None:
         raise InputError(

@@ -45,7 +45,7 @@ from thgs.errors import InputError, ThgsError
 from thgs.export import write_json
 from thgs.guidance.preprocess.run import PreprocessConfig
 from thgs.guidance.preprocess.sam import DEFAULT_SAM
-from thgs.pipeline import PRESETS, FieldConfig
+from thgs.pipeline import FieldConfig, chosen_field_config
 from thgs.suite.discover import SuiteScene
 from thgs.suite.report import SceneResult, SuiteReport
 from thgs.text import LANGSPLAT_SPACE
@@ -123,27 +123,20 @@ class SuiteConfig:
         Raises:
             InputError: naming the option.
         """
-        if self.preset is not None and self.preset not in PRESETS:
-            raise InputError(
-                "--preset", f"unknown {self.preset!r}; choose from {', '.join(PRESETS)}"
-            )
-        if self.preset is not None and self.config is not None:
-            raise InputError("--preset", "pass either --preset or --config, not both")
         if self.selection not in ("auto", "paper"):
             raise InputError("--selection", f"must be auto or paper, got {self.selection!r}")
         if self.device not in ("auto", "cpu", "cuda", "mps"):
             raise InputError("--device", f"must be auto, cpu, cuda or mps, got {self.device!r}")
-        for benchmark in ("lerf_ovs", "3dovs"):
+        for benchmark in ("lerf_ovs", "3dovs"):  # the preset, the config and --set
             self.field_config(benchmark)
         return self
 
     def field_config(self, benchmark: str) -> FieldConfig:
         """The field config of a scene of ``benchmark``."""
-        if self.config is not None:
-            base = self.config
-        else:
-            base = PRESETS[self.preset or ("3dovs" if benchmark == "3dovs" else "lerf")]()
-        return base.with_settings(self.settings)
+        preset = self.preset
+        if preset is None and self.config is None:
+            preset = "3dovs" if benchmark == "3dovs" else "lerf"
+        return chosen_field_config(preset, self.config, self.settings)
 
     def to_json(self) -> dict[str, Any]:
         """The settings as JSON (the report's "settings")."""
