@@ -10,12 +10,10 @@ from __future__ import annotations
 
 import torch
 
+from thgs.choices import DEVICES
 from thgs.errors import InputError
 
 __all__ = ["DEVICES", "resolve_device", "set_cpu_threads"]
-
-DEVICES = ("auto", "cpu", "cuda", "mps")
-"""The device names the command line offers (``cuda:N`` is accepted too)."""
 
 
 def _mps_available() -> bool:

@@ -8,6 +8,7 @@ from typing import Annotated, Literal
 
 import tyro
 
+from thgs.choices import Device
 from thgs.cli._console import StageBars, settings_as_flags, setup_logging, stage_progress, stdout
 from thgs.cli._outputs import check_output_folder
 
@@ -28,7 +29,7 @@ def bench(
     gaussians: int | None = None,
     views: int | None = None,
     cache: Path | None = None,
-    device: Literal["auto", "cpu", "cuda", "mps"] = "auto",
+    device: Device = "auto",
     lift_cache: Path | None = None,
     verbose: bool = False,
 ) -> None:

@@ -5,11 +5,12 @@ from __future__ import annotations
 import contextlib
 import math
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated
 
 import tyro
 from rich.table import Table
 
+from thgs.choices import Device, FieldPreset, ScenePreset
 from thgs.cli._console import StageBars, setup_logging, stage_progress, stdout, warn
 from thgs.cli._outputs import check_output_file, check_output_folder
 from thgs.errors import InputError
@@ -51,7 +52,7 @@ def build(
     *,
     out: Annotated[Path, tyro.conf.arg(aliases=("-o",))],
     guidance: Path | None = None,
-    preset: Literal["lerf", "3dovs"] | None = None,
+    preset: FieldPreset | None = None,
     config: Path | None = None,
     set: tuple[str, ...] = (),
     source: Path | None = None,
@@ -63,7 +64,7 @@ def build(
     text_model: Path | None = None,
     reference: bool = False,
     repeated_parts: bool = True,
-    device: Literal["auto", "cpu", "cuda", "mps"] = "auto",
+    device: Device = "auto",
     lift_cache: Path | None = None,
     threads: int | None = None,
     ray: Annotated[str | None, tyro.conf.arg(metavar="[ADDRESS]")] = None,
@@ -219,7 +220,7 @@ def build(
 def demo(
     *,
     out: Annotated[Path, tyro.conf.arg(aliases=("-o",))] = Path("thgs-demo"),
-    preset: Literal["synth-small", "synth-medium", "synth-large"] = "synth-small",
+    preset: ScenePreset = "synth-small",
     seed: int = 0,
     gaussians: int | None = None,
     views: int | None = None,

@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated
 
 import tyro
 from rich.table import Table
 
+from thgs.choices import Device
 from thgs.cli._console import StageBars, setup_logging, stage_progress, stdout
 from thgs.cli._outputs import check_output_file
 from thgs.errors import InputError
@@ -39,7 +40,7 @@ def evaluate(
     out: Annotated[Path | None, tyro.conf.arg(aliases=("-o",))] = None,
     scene: Path | None = None,
     text_model: Path | None = None,
-    device: Literal["auto", "cpu", "cuda", "mps"] = "auto",
+    device: Device = "auto",
     other_scene: bool = False,
     rescale_labels: bool = False,
     verbose: bool = False,

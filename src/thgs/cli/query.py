@@ -9,6 +9,7 @@ from typing import Annotated, Literal
 import tyro
 from rich.table import Table
 
+from thgs.choices import Device
 from thgs.cli._console import settings_as_flags, setup_logging, stdout
 from thgs.cli._outputs import check_output_folder
 from thgs.errors import InputError, ThgsError
@@ -16,7 +17,6 @@ from thgs.errors import InputError, ThgsError
 __all__ = ["export", "pick", "query"]
 
 Mode = Literal["auto", "paper", "level", "threshold"]
-Device = Literal["auto", "cpu", "cuda", "mps"]
 
 
 def _query_config(

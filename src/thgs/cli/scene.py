@@ -11,6 +11,7 @@ from typing import Annotated, Literal
 import tyro
 from rich.table import Table
 
+from thgs.choices import ScenePreset
 from thgs.cli._console import settings_as_flags, setup_logging, stderr, stdout
 from thgs.scene import SceneSummary, load_scene, summarize
 
@@ -107,7 +108,7 @@ def info(
 
 
 def synth(
-    preset: Literal["synth-small", "synth-medium", "synth-large"],
+    preset: ScenePreset,
     out: Path,
     /,
     *,

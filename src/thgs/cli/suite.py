@@ -13,6 +13,7 @@ from rich.live import Live
 from rich.markup import escape
 from rich.table import Table
 
+from thgs.choices import Device, FieldPreset
 from thgs.cli._console import error, setup_logging, stderr, stdout
 from thgs.cli._outputs import check_output_folder
 from thgs.guidance.preprocess.sam import DEFAULT_SAM
@@ -94,11 +95,11 @@ def suite(
     *,
     out: Annotated[Path, tyro.conf.arg(aliases=("-o",))],
     select: tuple[str, ...] = (),
-    preset: Literal["lerf", "3dovs"] | None = None,
+    preset: FieldPreset | None = None,
     config: Path | None = None,
     set: tuple[str, ...] = (),
     selection: Literal["auto", "paper"] = "auto",
-    device: Literal["auto", "cpu", "cuda", "mps"] = "auto",
+    device: Device = "auto",
     sam: str = DEFAULT_SAM,
     clip: str = LANGSPLAT_SPACE,
     ray: Annotated[str | None, tyro.conf.arg(metavar="[ADDRESS]")] = None,

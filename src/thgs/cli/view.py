@@ -8,6 +8,7 @@ from typing import Annotated, Literal
 
 import tyro
 
+from thgs.choices import Device
 from thgs.cli._console import settings_as_flags, setup_logging, stdout
 
 __all__ = ["view"]
@@ -24,7 +25,7 @@ def view(
     mode: Literal["auto", "paper", "level", "threshold"] = "auto",
     threshold: float | None = None,
     text_model: Path | None = None,
-    device: Literal["auto", "cpu", "cuda", "mps"] = "auto",
+    device: Device = "auto",
     token: bool = True,
     export_root: Path = Path("thgs-export"),
     verbose: bool = False,

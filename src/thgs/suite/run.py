@@ -41,6 +41,7 @@ from typing import Any, Literal
 
 from thgs._atomic import atomic_output
 from thgs._json import load_json
+from thgs.choices import DEVICES
 from thgs.errors import InputError, ThgsError
 from thgs.export import write_json
 from thgs.guidance.preprocess.run import PreprocessConfig
@@ -125,7 +126,7 @@ class SuiteConfig:
         """
         if self.selection not in ("auto", "paper"):
             raise InputError("--selection", f"must be auto or paper, got {self.selection!r}")
-        if self.device not in ("auto", "cpu", "cuda", "mps"):
+        if self.device not in DEVICES:
             raise InputError("--device", f"must be auto, cpu, cuda or mps, got {self.device!r}")
         for benchmark in ("lerf_ovs", "3dovs"):  # the preset, the config and --set
             self.field_config(benchmark)
