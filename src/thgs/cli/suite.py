@@ -140,14 +140,11 @@ def suite(
         dry_run: print what would run for each scene and why, and stop.
         verbose: log every stage.
     """
-    from thgs.errors import InputError
     from thgs.pipeline import read_field_config
     from thgs.suite import SuiteConfig, find_suite, run_suite, write_suite_report
 
     setup_logging(verbose)
     check_output_folder(out)
-    if config is not None and preset is not None:
-        raise InputError("--preset", "pass either --preset or --config, not both")
     settings = SuiteConfig(
         preset=preset,
         config=None if config is None else read_field_config(config),
