@@ -4,11 +4,12 @@
     .venv/bin/python benchmarks/bench_selection.py --seeds 5 6 7 8 9 --out /tmp/selection
 
 Every seed × Gaussian kind (2dgs, 3dgs) × mask-fault severity (0, 0.5, 1) is one scene: a
-synth-small dataset written once (name-perfect features; ``thgs.demo.synthetic_dataset``, cached
-in ``--out``), lifted, partitioned and merged once. Each stand-in of ``--stand-ins``
-(``thgs.synthetic.stand_in`` specs; default name-perfect, the CLIP grid around ``clip-like`` and
-the older ``context_mix`` at 0.8 as a stress case) then gets its oracle features made again with
-the very same masks, its region features computed and its repeated parts grouped: the field that
+synth-small dataset written once (name-perfect features;
+``thgs.synthetic.cache.synthetic_dataset``, cached in ``--out``), lifted, partitioned and merged
+once. Each stand-in of ``--stand-ins`` (``thgs.synthetic.stand_in`` specs; default name-perfect,
+the CLIP grid around ``clip-like`` and the older ``context_mix`` at 0.8 as a stress case) then
+gets its oracle features made again with the very same masks, its region features computed and
+its repeated parts grouped: the field that
 ``thgs synth --stand-in SPEC`` + ``thgs build`` give (checked by tests/test_stand_in.py).
 Each such field is kept in ``--out`` with the settings that built it and rebuilt when they differ.
 
@@ -34,7 +35,6 @@ from pathlib import Path
 import numpy as np
 
 from thgs import load_scene
-from thgs.demo import synthetic_dataset
 from thgs.eval import evaluate_3dovs, evaluate_dataset, find_ground_truth
 from thgs.eval.ground_truth import read_hierarchy
 from thgs.eval.three_dovs import read_3dovs_segmentations
@@ -45,6 +45,7 @@ from thgs.pipeline import FieldConfig, MergedLevels, describe_levels, lift_scene
 from thgs.query import FieldQuery, QueryConfig, Regions
 from thgs.synthetic import generate_scene, preset, render_view
 from thgs.synthetic import oracle as oracle_module
+from thgs.synthetic.cache import synthetic_dataset
 from thgs.synthetic.dataset import DatasetConfig
 from thgs.synthetic.oracle import CLIP_GRID, OracleConfig, oracle_guidance, stand_in_spec
 from thgs.text import MiniLMEncoder

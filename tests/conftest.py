@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -24,6 +25,53 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
             item.add_marker(pytest.mark.ray)
         if item.get_closest_marker("ray") or item.get_closest_marker("browser"):
             item.add_marker(pytest.mark.slow)
+
+
+_SESSION_RAY: list = []
+"""The :class:`thgs.cluster.RayConnection` of the session's local Ray while it is up."""
+
+
+@pytest.fixture(scope="session")
+def local_ray():
+    """One local Ray with 2 CPUs for the whole session, started by
+    :func:`thgs.cluster.connect_ray` when the first test that asks for it runs and shut down at
+    the session's end: its connection (``local``, started here). The library and the CLI use a
+    Ray already initialised in this process as it is, so every Ray test shares this one."""
+    ray = pytest.importorskip("ray")
+    from thgs.cluster import connect_ray
+
+    assert not ray.is_initialized(), "a test left Ray initialised: the session's would not start"
+    connection = connect_ray(None, num_cpus=2)
+    assert connection.started
+    _SESSION_RAY.append(connection)
+    try:
+        yield connection
+    finally:
+        _SESSION_RAY.clear()
+        connection.shutdown()
+    assert not ray.is_initialized()
+
+
+@pytest.fixture(autouse=True)
+def _session_ray_hidden(request):
+    """While the session's Ray is up, a test not marked ``ray`` finds Ray not initialised
+    (``ray.is_initialized()`` is False, as in a process that never started it), whatever ran
+    before it; starting a Ray there is an error naming the ``local_ray`` fixture."""
+    if not _SESSION_RAY or request.node.get_closest_marker("ray"):
+        yield
+        return
+    ray = sys.modules["ray"]
+
+    def init(*args, **kwargs):
+        raise AssertionError(
+            "ray.init() in a test not marked ray while the session's Ray is up: use the "
+            "local_ray fixture"
+        )
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(ray, "is_initialized", lambda: False)
+        patch.setattr(ray, "init", init)
+        yield
 
 
 @pytest.fixture

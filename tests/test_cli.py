@@ -354,7 +354,7 @@ def test_field_without_or_with_another_scene_is_refused(small_field, tmp_path, c
 
     field = load_field(small_field)
     bare = tmp_path / "bare.thgs"
-    save_field(bare, replace(field, config={k: v for k, v in field.config.items() if k != "scene"}))
+    save_field(bare, replace(field, provenance=replace(field.provenance, scene=None)))
     code, _, err = run(["pick", str(bare), "--view", "x", "--pixel", "0", "0"], capsys)
     assert code == 2 and "records no scene" in err and "--scene" in err
     other = tmp_path / "other"
@@ -565,8 +565,11 @@ def test_build_refuses_an_embedding_file_that_disagrees(small_dataset, tmp_path,
     assert "".join(expected.split()) in "".join(err.split())
     assert "hold 384-D features" in err
     (guidance / "embedding.json").unlink()  # 384-D features without a record: name their space
-    code, _, err = run([*base, "--text-model", str(tmp_path / "nowhere")], capsys)
+    code, _, err = run(base, capsys)
     assert code == 2 and "384-D features and no embedding.json" in " ".join(err.split())
+    # a --text-model that is not a folder is named before the scene is even loaded
+    code, _, err = run([*base, "--text-model", str(tmp_path / "nowhere")], capsys)
+    assert code == 2 and "--text-model:" in err
     base += ["--space", "sentence-transformers/all-MiniLM-L6-v2"]
     code, _, err = run([*base, "--text-model", str(tmp_path / "nowhere")], capsys)
     err = " ".join(err.split())
@@ -588,7 +591,7 @@ def test_build_records_the_preprocess_text_model(small_dataset, tmp_path, capsys
     code, _, err = run(argv, capsys)
     assert code == 0, err
     field = load_field(out)
-    assert field.config["text_model"] == str(model.resolve())
+    assert field.provenance.text_model == str(model.resolve())
     recorded_config(field)  # the record is not a setting: the field can be rebuilt from itself
 
 
@@ -887,7 +890,7 @@ def test_ctrl_c_during_bench_leaves_no_report_and_no_half_dataset(
     or none of it."""
     import thgs.bench
     import thgs.synthetic.dataset
-    from thgs.demo import open_synthetic_dataset
+    from thgs.synthetic.cache import open_synthetic_dataset
     from thgs.text import MINILM_SPACE, load_text_encoder
 
     real_guidance, calls = thgs.synthetic.dataset.oracle_guidance, []

@@ -20,6 +20,7 @@ from conftest import random_gaussians
 from thgs import InputError
 from thgs.field import FORMAT_VERSION, SemanticField, load_field, save_field, scene_fingerprint
 from thgs.hierarchy import RegionLevels
+from thgs.provenance import Provenance, SceneRecord
 
 FINGERPRINT = "sha256:" + "ab" * 32
 
@@ -413,13 +414,14 @@ def test_file_layout_is_the_documented_one(tmp_path):
     np.testing.assert_array_equal(tensors["seen_1"], [1, 1, 0])
     assert header == {
         "format": "thgs.semantic_field",
-        "version": 3,
+        "version": 4,
         "space": "sentence-transformers/all-MiniLM-L6-v2",
         "fingerprint": FINGERPRINT,
         "config": {"partition": {"levels": ["s", "m", "l"], "regularization": 0.1}, "seed": 0},
         "gaussians": 6,
         "region_counts": [4, 3, 2, 1],
         "checksum": checksum(tensors),
+        "provenance": {"scene": None, "text_model": None, "thgs_version": None},
     }
     with safe_open(str(path), framework="numpy") as handle:
         raw = handle.metadata()["thgs"]
@@ -512,8 +514,11 @@ def _raw_field(**changes) -> tuple[dict[str, np.ndarray], dict]:
         "gaussians": 6,
         "region_counts": [4, 3, 2, 1],
         "checksum": checksum(tensors),
+        "provenance": field.provenance.to_json(),
     }
     header.update(changes)
+    if header["version"] in (1, 2, 3):  # the record had no place of its own before version 4
+        header.pop("provenance")
     return tensors, header
 
 
@@ -549,8 +554,8 @@ def _retype(tensors: dict, name: str, dtype: type) -> dict:
 
 TAMPERED = {
     "newer version": (
-        lambda t, h: (t, {**h, "version": 4}),
-        "written by a newer thgs (version 4), this one reads 3",
+        lambda t, h: (t, {**h, "version": 5}),
+        "written by a newer thgs (version 5), this one reads 4",
     ),
     "version zero": (lambda t, h: (t, {**h, "version": 0}), "invalid format version 0"),
     "version as text": (lambda t, h: (t, {**h, "version": "1"}), "invalid format version '1'"),
@@ -585,7 +590,7 @@ TAMPERED = {
     ),
     "tensor unexpected": (
         lambda t, h: ({**t, "names": np.zeros(1, np.uint8)}, h),
-        "unexpected tensors ['names'] in format version 3",
+        "unexpected tensors ['names'] in format version 4",
     ),
     "labels as int64": (
         lambda t, h: (_retype(t, "labels", np.int64), h),
@@ -708,3 +713,62 @@ def test_content_altered_after_writing_is_refused_and_version_2_still_reads(tmp_
     del header["checksum"]
     write_raw(tmp_path / "v2.thgs", tensors, header)
     np.testing.assert_array_equal(load_field(tmp_path / "v2.thgs").labels, mug_field().labels)
+
+
+def test_provenance_is_kept_beside_the_config_and_read_back_typed(tmp_path):
+    record = Provenance(
+        scene=SceneRecord(
+            "../scene", source="/data/garden", iteration=30000, images="images_4", scale=0.25
+        ),
+        text_model="/models/clip",
+        thgs_version="1.2.3",
+    )
+    field = dataclasses.replace(mug_field(), provenance=record)
+    save_field(tmp_path / "f.thgs", field)
+    loaded = load_field(tmp_path / "f.thgs")
+    assert loaded.provenance == record
+    assert loaded.config == mug_field().config  # the build settings alone
+    _, header = read_raw(tmp_path / "f.thgs")
+    assert header["provenance"] == {
+        "scene": {
+            "path": "../scene",
+            "source": "/data/garden",
+            "iteration": 30000,
+            "images": "images_4",
+            "scale": 0.25,
+        },
+        "text_model": "/models/clip",
+        "thgs_version": "1.2.3",
+    }
+
+
+def test_a_version_3_field_keeps_its_scene_and_text_model_in_the_record(tmp_path):
+    """Before version 4 the scene and the text model were entries of the config."""
+    config = {**mug_field().config, "scene": {"path": "output/teatime", "scale": 0.5}}
+    config["text_model"] = "/models/clip"
+    write_raw(tmp_path / "v3.thgs", *_raw_field(version=3, config=config))
+    loaded = load_field(tmp_path / "v3.thgs")
+    assert loaded.config == mug_field().config
+    assert loaded.provenance == Provenance(
+        scene=SceneRecord("output/teatime", scale=0.5), text_model="/models/clip"
+    )
+    assert loaded.provenance.thgs_version is None  # not recorded then
+
+
+@pytest.mark.parametrize(
+    ("provenance", "message"),
+    [
+        ([], "provenance must be an object, got list"),
+        ({"scene": None, "owner": "x"}, "provenance has unknown entries ['owner']"),
+        ({"text_model": 3}, "provenance's text_model must be a string, got 3"),
+        ({"scene": {"source": "x"}}, "the scene record must be an object with a 'path' string"),
+        ({"scene": {"path": "x", "scale": 0}}, "the scene record's scale must be > 0, got 0"),
+        ({"scene": {"path": "x", "iteration": True}}, "iteration must be an integer, got True"),
+        ({"scene": {"path": "x", "zoom": 2}}, "the scene record has unknown entries ['zoom']"),
+    ],
+)
+def test_a_bad_provenance_is_named(tmp_path, provenance, message):
+    write_raw(tmp_path / "bad.thgs", *_raw_field(provenance=provenance))
+    with pytest.raises(InputError, match=re.escape(message)) as caught:
+        load_field(tmp_path / "bad.thgs")
+    assert caught.value.source == str(tmp_path / "bad.thgs")

@@ -258,7 +258,7 @@ def test_a_field_recorded_before_median_steps_took_the_mean_over_views(small_fie
 
 
 def test_the_scene_is_found_relative_to_the_field(small_dataset, small_field, tmp_path):
-    recorded = load_field(small_field).config["scene"]["path"]
+    recorded = load_field(small_field).provenance.scene.path
     assert recorded == os.path.relpath(small_dataset, small_field.parent)
     # the field and its scene copied together elsewhere: the copy opens the copied scene
     root = small_field.parent.parent

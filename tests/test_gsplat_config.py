@@ -13,6 +13,7 @@ import yaml
 from conftest import random_cameras, random_gaussians
 from test_gsplat_checkpoint import assert_same, save, splats_of
 from thgs import InputError, load_scene
+from thgs.provenance import SceneRecord
 from thgs.scene import write_colmap
 from thgs.scene.gsplat_config import find_gsplat_source, read_gsplat_config
 
@@ -212,5 +213,5 @@ def test_build_from_a_gsplat_result_folder_with_no_flags(small_dataset, tmp_path
     except SystemExit as exc:  # pragma: no cover - the command returns normally
         assert not exc.code
     field = load_field("garden.thgs")
-    assert field.config["scene"] == {"path": "results/garden", "source": "data/garden"}
+    assert field.provenance.scene == SceneRecord("results/garden", source="data/garden")
     assert field.labels.shape == (len(gaussians), 4) and min(field.region_counts) > 0

@@ -16,6 +16,7 @@ from thgs import InputError, load_scene
 from thgs.eval import find_ground_truth, read_lerf_labels
 from thgs.eval.rules import OPENGAUSSIAN_LERF_PROMPTS
 from thgs.field import load_field
+from thgs.provenance import SceneRecord
 from thgs.scene.cfg_args import find_model_source, read_cfg_args
 from thgs.synthetic.layouts import write_langsplat_lerf
 
@@ -183,8 +184,8 @@ def test_build_and_eval_on_the_real_layouts_with_no_flags(
     code, out, err = run(["build", "output/teatime", "-o", "teatime.thgs"], capsys)
     assert code == 0, err
     assert "wrote teatime.thgs" in one_line(out)
-    record = load_field("teatime.thgs").config["scene"]
-    assert record == {"path": "output/teatime", "source": "lerf_ovs/teatime"}
+    record = load_field("teatime.thgs").provenance.scene
+    assert record == SceneRecord("output/teatime", source="lerf_ovs/teatime")
 
     # labels in LangSplat's sibling folder lerf_ovs/label/teatime, found with no flag
     code, out, err = run(["eval", "lerf_ovs/teatime", "teatime.thgs"], capsys)

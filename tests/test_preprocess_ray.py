@@ -103,7 +103,7 @@ def _assert_same_files(folder: Path, reference: Path) -> None:
 
 
 def test_ray_not_initialised_is_a_clear_error(tmp_path, models):
-    # first in this module: its Ray starts with the fixture below
+    # not marked ray: the session's Ray, if up, is hidden (conftest.py)
     assert not ray.is_initialized()
     with pytest.raises(
         ThgsError, match=r"Ray is not initialised in this process: .*connect_ray\(\)"
@@ -111,15 +111,9 @@ def test_ray_not_initialised_is_a_clear_error(tmp_path, models):
         preprocess_with_ray([], sam=models["sam"], clip=models["clip"])
 
 
-@pytest.fixture(scope="module")
-def local_ray():
-    with connect_ray(None, num_cpus=2) as connection:
-        yield connection
-    assert not ray.is_initialized()
-
-
 @pytest.mark.slow
 def test_ray_writes_the_in_process_files_byte_for_byte(scenes, models, local_ray):
+    # the session's Ray (conftest.py), started by connect_ray: a local one with 2 CPUs
     assert (local_ray.address, local_ray.started, local_ray.cpus) == ("local", True, 2.0)
     seen = []
     summaries = preprocess_with_ray(

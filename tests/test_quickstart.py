@@ -17,6 +17,7 @@ import pytest
 import thgs.cli
 from conftest import run_cli as run
 from thgs.field import load_field
+from thgs.provenance import SceneRecord
 
 REPO = Path(__file__).resolve().parents[1]
 QUICKSTART = REPO / "docs" / "quickstart.md"
@@ -112,7 +113,7 @@ def test_the_synthetic_block_runs_on_the_real_layout(small_dataset, tmp_path, mo
     # build: the source named by cfg_args's foreign path found here by its tail, and recorded
     assert "wrotetabletop.thgs" in squeezed(outputs["build"])
     field = load_field("tabletop.thgs")
-    assert field.config["scene"] == {"path": "output/tabletop", "source": "lerf_ovs/tabletop"}
+    assert field.provenance.scene == SceneRecord("output/tabletop", source="lerf_ovs/tabletop")
     assert field.space == "sentence-transformers/all-MiniLM-L6-v2"
 
     # query: both objects found, a mask per view for each

@@ -80,13 +80,6 @@ def in_process(suite_root):
 
 
 @pytest.fixture(scope="module")
-def local_ray():
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
-    yield
-    ray.shutdown()
-
-
-@pytest.fixture(scope="module")
 def on_ray(suite_root, local_ray):
     out = suite_root.parent / "out-ray"
     scenes = find_suite(suite_root)

@@ -21,7 +21,6 @@ from PIL import Image
 
 from thgs import load_cameras, load_scene
 from thgs.cli import entrypoint
-from thgs.demo import synthetic_dataset
 from thgs.errors import InputError
 from thgs.eval import read_3dovs_segmentations, read_lerf_labels, read_scannet_labels
 from thgs.eval.ground_truth import read_hierarchy
@@ -40,6 +39,7 @@ from thgs.synthetic import (
     stand_in,
     write_dataset,
 )
+from thgs.synthetic.cache import synthetic_dataset
 from thgs.synthetic.dataset import SCANNET_LABELS, _class_masks
 from thgs.synthetic.oracle import ground_truth_maps
 from thgs.text import MINILM_SPACE

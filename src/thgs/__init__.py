@@ -4,10 +4,10 @@ The public API is what this module exports; submodules starting with an undersco
 """
 
 import importlib
-from importlib.metadata import PackageNotFoundError, version
 from typing import TYPE_CHECKING
 
 from thgs.errors import InputError, ThgsError
+from thgs.provenance import installed_version
 
 if TYPE_CHECKING:
     from thgs.field import SemanticField, load_field, save_field
@@ -68,10 +68,7 @@ def __dir__() -> list[str]:
     return sorted({*globals(), *_LAZY})
 
 
-try:
-    __version__ = version("thgs")
-except PackageNotFoundError:  # running from a source tree without installation
-    __version__ = "0.0.0+unknown"
+__version__ = installed_version()
 
 __all__ = [
     "Cameras",

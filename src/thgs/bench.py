@@ -1,7 +1,7 @@
 """``thgs bench``: time, memory and quality of the method and its ablations in one run.
 
-For each synthetic preset (:func:`thgs.demo.synthetic_dataset`, cached), the field is built with
-the LERF preset ("full") and with each variant of :data:`VARIANTS`: the paper's Table 3
+For each synthetic preset (:func:`thgs.synthetic.cache.synthetic_dataset`, cached), the field is
+built with the LERF preset ("full") and with each variant of :data:`VARIANTS`: the paper's Table 3
 ablations (no edge reweighting, no depth decay, instance level only, no progressive merging),
 the lifting and reweighting alternatives (exact lifting, absolute offsets) and the authors' code
 as a whole. Every variant is scored by every protocol the dataset has ground truth for
@@ -35,7 +35,6 @@ import numpy as np
 import torch
 
 from thgs._atomic import atomic_files, atomic_output
-from thgs.demo import default_cache, open_synthetic_dataset, synthetic_dataset
 from thgs.device import resolve_device
 from thgs.errors import InputError, ThgsError
 from thgs.eval.dataset import evaluate_dataset, find_ground_truth
@@ -44,6 +43,7 @@ from thgs.export import write_json
 from thgs.lift import LiftConfig
 from thgs.pipeline import FieldConfig, build_levels, lift_scene
 from thgs.query import FieldQuery, Regions
+from thgs.synthetic.cache import default_cache, open_synthetic_dataset, synthetic_dataset
 from thgs.synthetic.oracle import stand_in
 from thgs.synthetic.scene import PRESETS
 from thgs.text import MINILM_SPACE, load_text_encoder
@@ -158,7 +158,8 @@ class BenchConfig:
             rule is judged on name-perfect features only.
         variants: names from :data:`VARIANTS`.
         gaussians, views: override the presets' sizes (quick runs).
-        cache: where the synthetic datasets are kept (default :func:`thgs.demo.default_cache`).
+        cache: where the synthetic datasets are kept (default
+            :func:`thgs.synthetic.cache.default_cache`).
         device: where the scenes are built and scored (:func:`thgs.device.resolve_device`).
         lift_cache: a folder keeping each scene's lifts between runs (:mod:`thgs.lift_cache`),
             for quality sweeps: the ``lift`` stage then times reading the cache, not lifting.

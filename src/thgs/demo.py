@@ -30,48 +30,28 @@ from thgs.errors import InputError
 from thgs.eval import matched_miou, purity
 from thgs.eval.ground_truth import Hierarchy, read_hierarchy
 from thgs.export import region_colors, slug, write_json, write_map_png
-from thgs.field import SemanticField, save_field
-from thgs.field_scene import record_scene
-from thgs.guidance import ViewGuidance, load_guidance, read_embedding_space
+from thgs.field import SemanticField
 from thgs.hierarchy.levels import LEVEL_NAMES
-from thgs.pipeline import FieldConfig, Progress, build_field
+from thgs.pipeline import FieldConfig, Progress
 from thgs.query import FieldQuery
 from thgs.render import render
 from thgs.scene import Scene, load_scene
-from thgs.synthetic import (
-    DatasetConfig,
-    OracleConfig,
-    evaluation_views,
-    generate_scene,
-    is_current_dataset,
-    preset,
-    stand_in_spec,
-    write_dataset,
-)
-from thgs.text import MINILM_SPACE, TextEncoder, load_text_encoder
+from thgs.synthetic import evaluation_views
+from thgs.synthetic.cache import default_cache, synthetic_dataset
+from thgs.text import MINILM_SPACE, load_text_encoder
 from thgs.views import selection_masks
+from thgs.workflows import BuildRequest, build_field_file
 
 __all__ = [
     "DemoReport",
     "QueryResult",
-    "default_cache",
     "demo_queries",
-    "open_synthetic_dataset",
     "run_demo",
-    "synthetic_dataset",
 ]
 
 logger = logging.getLogger(__name__)
 
 _HIGHLIGHT = np.array([0.0, 0.9, 1.0])
-
-
-def default_cache() -> Path:
-    """``$THGS_CACHE``, else ``$XDG_CACHE_HOME/thgs``, else ``~/.cache/thgs``."""
-    if os.environ.get("THGS_CACHE"):
-        return Path(os.environ["THGS_CACHE"])
-    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
-    return Path(base) / "thgs"
 
 
 @dataclass(frozen=True)
@@ -230,84 +210,6 @@ def demo_queries(hierarchy: Hierarchy, objects: int = 3, parts: int = 2) -> tupl
     return tuple(object_names[:objects] + part_names[:parts])
 
 
-def synthetic_dataset(
-    cache: Path,
-    name: str,
-    seed: int,
-    gaussians: int | None,
-    views: int | None,
-    encoder: TextEncoder,
-    progress: Progress | None = None,
-    *,
-    kind: str = "2dgs",
-    severity: float = 0.5,
-    stand_in: str = "name-perfect",
-) -> tuple[Path, bool]:
-    """The synthetic dataset of ``name`` (a preset) and ``seed`` in ``cache``, written there
-    with oracle guidance in ``encoder``'s space if it is not yet: ``(folder, generated now)``.
-
-    ``gaussians`` and ``views`` override the preset's size; ``kind`` (2dgs, 3dgs), the oracle's
-    mask ``severity`` and its CLIP stand-in (a :func:`thgs.synthetic.stand_in` spec, e.g.
-    ``"clip-like"``) choose the scenario. The folder name says every value that is not the
-    default.
-
-    Raises:
-        InputError: a bad stand-in spec (before anything is written).
-    """
-    overrides: dict[str, object] = {"seed": seed}
-    tag = f"{name}-seed{seed}"
-    if gaussians is not None:
-        overrides["gaussians"] = gaussians
-        tag += f"-{gaussians}g"
-    if views is not None:
-        overrides["views"] = views
-        tag += f"-{views}v"
-    if kind != "2dgs":
-        overrides["kind"] = kind
-        tag += f"-{kind}"
-    if severity != 0.5:
-        tag += f"-severity{severity:g}"
-    oracle = OracleConfig(severity=severity, seed=seed).with_stand_in(stand_in)
-    spec = stand_in_spec(oracle)
-    if spec != "name-perfect":
-        tag += "-" + spec.replace(":", "-").replace(",", "-").replace("=", "")
-    folder = cache / tag
-    if is_current_dataset(folder):
-        logger.info("reusing the cached dataset %s", folder)
-        return folder, False
-    config = preset(name, **overrides)
-    scene = generate_scene(config)
-    write_dataset(
-        folder,
-        scene,
-        encoder,
-        oracle=oracle,
-        config=DatasetConfig(),
-        overwrite=folder.exists(),
-        progress=None if progress is None else lambda d, t: progress("generate", d, t),
-    )
-    return folder, True
-
-
-def open_synthetic_dataset(folder: Path, encoder: TextEncoder) -> tuple[Scene, list[ViewGuidance]]:
-    """A synthetic dataset's scene and guidance, checking its features are in ``encoder``'s
-    space.
-
-    Raises:
-        InputError: the guidance records no embedding space, or another one.
-    """
-    scene = load_scene(folder)
-    features_dir = folder / "language_features"
-    recorded = read_embedding_space(features_dir)
-    if recorded is None:
-        raise InputError(features_dir, "records no embedding space (embedding.json)")
-    if recorded[0] != encoder.space:
-        raise InputError(
-            features_dir, f"features are in {recorded[0]!r}, expected {encoder.space!r}"
-        )
-    return scene, load_guidance(features_dir, scene.cameras)
-
-
 def _iou(selected: np.ndarray, wanted: np.ndarray) -> float:
     if not wanted.any():
         return float("nan")
@@ -372,12 +274,13 @@ def run_demo(
     folder, generated = synthetic_dataset(
         cache, scene_preset, seed, gaussians, views, encoder, progress
     )
-    scene, guidance = open_synthetic_dataset(folder, encoder)
-    field = build_field(scene, guidance, FieldConfig.lerf(), space=encoder.space, progress=progress)
-    field = record_scene(field, folder)
     out.mkdir(parents=True, exist_ok=True)
     field_path = out / "field.thgs"
-    save_field(field_path, field)
+    request = BuildRequest(
+        scene=folder, out=field_path, config=FieldConfig.lerf(), space=encoder.space, device="cpu"
+    )
+    field = build_field_file(request, progress=progress).field
+    scene = load_scene(folder)
     files = [field_path]
 
     hierarchy = read_hierarchy(folder / "ground_truth.safetensors")

@@ -17,7 +17,10 @@ One field is stored as one safetensors file::
 The file is written atomically, and the same field always gives the same bytes; the build's
 timings are not in it (version 2), so building the same inputs twice gives the same file. The
 metadata holds the SHA-256 of the tensors (version 3), checked on every read: a file altered
-after it was written (zeroed labels with the header intact) is refused, not trusted.
+after it was written (zeroed labels with the header intact) is refused, not trusted. Beside the
+build config, the metadata keeps the field's provenance (version 4: the scene to reload, the
+text model, the thgs that built it; :mod:`thgs.provenance`); older files keep the scene and the
+text model inside the config and are read into the same record.
 """
 
 from __future__ import annotations
@@ -29,6 +32,7 @@ import math
 import os
 import re
 from dataclasses import dataclass
+from dataclasses import field as dataclass_field
 from pathlib import Path
 from typing import Any
 
@@ -38,6 +42,7 @@ import torch
 from thgs._atomic import atomic_output
 from thgs.errors import InputError
 from thgs.hierarchy.levels import RegionLevels
+from thgs.provenance import Provenance
 from thgs.scene import Gaussians
 
 __all__ = [
@@ -50,7 +55,7 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
-FORMAT_VERSION = 3
+FORMAT_VERSION = 4
 """Version of the semantic-field file layout this thgs writes (and the newest it reads)."""
 
 _FORMAT = "thgs.semantic_field"
@@ -61,6 +66,8 @@ _V1_METADATA_KEYS = (*_METADATA_KEYS, "timings")
 """Version 1 also stored the build's timings, which made every build's bytes differ."""
 _V3_METADATA_KEYS = (*_METADATA_KEYS, "checksum")
 """Version 3 adds the SHA-256 of the tensors (:func:`_tensors_checksum`)."""
+_V4_METADATA_KEYS = (*_V3_METADATA_KEYS, "provenance")
+"""Version 4 keeps the provenance beside the config (before, inside it)."""
 
 
 def _tensors_checksum(tensors: dict[str, np.ndarray]) -> str:
@@ -99,11 +106,12 @@ class SemanticField:
         space: the embedding space of the features, e.g.
             ``"sentence-transformers/all-MiniLM-L6-v2"``; queries must be encoded in it.
         fingerprint: :func:`scene_fingerprint` of the Gaussians the field was built on.
-        config: the build config, JSON values only (nested dicts with string keys, lists,
-            strings, finite numbers, booleans, None).
+        config: the build config (:meth:`thgs.pipeline.FieldConfig.to_json`), JSON values only
+            (nested dicts with string keys, lists, strings, finite numbers, booleans, None).
         timings: wall time per build stage in seconds, in the order the stages ran. Kept in
             memory only: :func:`save_field` does not write them (the same build must give the
             same bytes), so a loaded field has none (a version-1 file's stored ones excepted).
+        provenance: where the field came from (:class:`thgs.provenance.Provenance`).
     """
 
     levels: RegionLevels
@@ -113,6 +121,7 @@ class SemanticField:
     fingerprint: str
     config: dict[str, Any]
     timings: dict[str, float]
+    provenance: Provenance = dataclass_field(default_factory=Provenance)
 
     def __len__(self) -> int:
         return int(self.labels.shape[0])
@@ -169,7 +178,8 @@ class SemanticField:
         D ≥ 1; region ids in range and contiguous (every id 0..R_k−1 used); parents in range and
         nested; features finite, unit (|‖f‖ − 1| < 1e-4) where seen and exactly zero where not;
         ``space`` non-empty; ``fingerprint`` ``"sha256:"`` + 64 hex digits; ``config`` a dict
-        of JSON values; ``timings`` finite seconds ≥ 0. Returns ``self`` to allow chaining.
+        of JSON values; ``provenance`` a :class:`thgs.provenance.Provenance`; ``timings`` finite
+        seconds ≥ 0. Returns ``self`` to allow chaining.
         """
         if not isinstance(self.levels, RegionLevels):
             raise InputError(source, f"levels must be RegionLevels, got {_describe(self.levels)}")
@@ -248,6 +258,10 @@ class SemanticField:
         problem = _json_problem(self.config, "config")
         if problem:
             raise InputError(source, problem)
+        if not isinstance(self.provenance, Provenance):
+            raise InputError(
+                source, f"provenance must be a Provenance, got {_describe(self.provenance)}"
+            )
         if not isinstance(self.timings, dict):
             raise InputError(source, f"timings must be a dict, got {type(self.timings).__name__}")
         for stage, seconds in self.timings.items():
@@ -344,6 +358,7 @@ def save_field(path: str | os.PathLike[str], field: SemanticField) -> None:
         "gaussians": len(field),
         "region_counts": list(field.region_counts),
         "checksum": _tensors_checksum(tensors),
+        "provenance": field.provenance.to_json(),
     }
     metadata = {"thgs": json.dumps(header, sort_keys=True, allow_nan=False)}
     data = save(tensors, metadata=metadata)
@@ -406,6 +421,13 @@ def load_field(path: str | os.PathLike[str]) -> SemanticField:
             path,
             f"metadata says region counts {header['region_counts']}, tensors have {counts}",
         )
+    config = header["config"]
+    if version >= 4:
+        provenance = Provenance.from_json(header["provenance"], str(path))
+    elif isinstance(config, dict):
+        provenance, config = Provenance.from_old_config(config, str(path))
+    else:
+        provenance = Provenance()  # check() names the config that is not a dict
     field = SemanticField(
         levels=RegionLevels(
             labels,
@@ -416,8 +438,9 @@ def load_field(path: str | os.PathLike[str]) -> SemanticField:
         seen=tuple(tensors[f"seen_{k}"].astype(bool) for k in (1, 2, 3)),  # type: ignore[arg-type]
         space=header["space"],
         fingerprint=header["fingerprint"],
-        config=header["config"],
+        config=config,
         timings=dict(header.get("timings", [])),
+        provenance=provenance,
     )
     field.check(source=str(path))
     if version >= 3 and header["checksum"] != _tensors_checksum(tensors):
@@ -447,7 +470,9 @@ def _read_header(path: Path, metadata: dict[str, str]) -> dict[str, Any]:
             path,
             f"written by a newer thgs (version {version}), this one reads {FORMAT_VERSION}",
         )
-    expected = {1: _V1_METADATA_KEYS, 2: _METADATA_KEYS}.get(version, _V3_METADATA_KEYS)
+    expected = {1: _V1_METADATA_KEYS, 2: _METADATA_KEYS, 3: _V3_METADATA_KEYS}.get(
+        version, _V4_METADATA_KEYS
+    )
     missing = [key for key in expected if key not in header]
     if missing:
         raise InputError(path, f"metadata lacks {missing}")

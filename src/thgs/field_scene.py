@@ -2,13 +2,13 @@
 
 A field file holds labels and features, not geometry; drawing masks, picking pixels or exporting
 PLYs also needs the Gaussians and the cameras. ``thgs build`` and ``thgs demo`` record how they
-loaded the scene in the field's config (key ``"scene"``: the absolute path and the loader's
-arguments); :func:`open_field_scene` reads the field, reloads that scene (or the one given) and
-checks that it is the same scene by its fingerprint.
+loaded the scene in the field's provenance (:class:`thgs.provenance.SceneRecord`: the path and
+the loader's arguments); :func:`open_field_scene` reads the field, reloads that scene (or the one
+given) and checks that it is the same scene by its fingerprint.
 
-A field whose features came from a local model folder also records that folder (key
-``"text_model"``, :func:`record_text_model`), so that :func:`field_text_encoder` encodes queries
-with it without being told again.
+A field whose features came from a local model folder also records that folder
+(:func:`record_text_model`), so that :func:`field_text_encoder` encodes queries with it without
+being told again.
 """
 
 from __future__ import annotations
@@ -17,13 +17,13 @@ import logging
 import os
 from dataclasses import replace
 from pathlib import Path
-from typing import Any
 
 import torch
 
 from thgs.device import resolve_device
 from thgs.errors import InputError
 from thgs.field import SemanticField, load_field, scene_fingerprint
+from thgs.provenance import SceneRecord
 from thgs.scene import Cameras, Scene, load_scene
 from thgs.text import TextEncoder, load_text_encoder
 
@@ -48,7 +48,7 @@ def record_scene(
     scale: float = 1.0,
     field_path: str | os.PathLike[str] | None = None,
 ) -> SemanticField:
-    """``field`` with how to reload its scene stored under ``config["scene"]``.
+    """``field`` with how to reload its scene in its provenance (``provenance.scene``).
 
     With ``field_path`` (where the field will be written), the scene's paths are stored relative
     to the field's folder, so that a field and its scene moved or copied together still find
@@ -62,16 +62,14 @@ def record_scene(
             return str(resolved)
         return os.path.relpath(resolved, Path(field_path).resolve().parent)
 
-    record: dict[str, Any] = {"path": stored(path)}
-    if source is not None:
-        record["source"] = stored(source)
-    if iteration is not None:
-        record["iteration"] = int(iteration)
-    if images is not None:
-        record["images"] = images
-    if scale != 1.0:
-        record["scale"] = float(scale)
-    return replace(field, config={**field.config, "scene": record})
+    record = SceneRecord(
+        stored(path),
+        source=None if source is None else stored(source),
+        iteration=None if iteration is None else int(iteration),
+        images=images,
+        scale=float(scale),
+    )
+    return replace(field, provenance=replace(field.provenance, scene=record))
 
 
 def open_field_scene(
@@ -100,18 +98,17 @@ def open_field_scene(
     field_path = Path(field_path)
     field = load_field(field_path)
     if scene is None:
-        record = field.config.get("scene")
-        if not isinstance(record, dict) or "path" not in record:
+        record = field.provenance.scene
+        if record is None:
             raise InputError(
                 field_path,
                 "records no scene (built by an older thgs?); pass the scene with --scene",
             )
         # relative paths are relative to the field's folder (joining keeps absolute ones)
         folder = field_path.resolve().parent
-        scene = folder / record["path"]
-        source = None if record.get("source") is None else folder / record["source"]
-        iteration, images = record.get("iteration"), record.get("images")
-        scale = record.get("scale", 1.0)
+        scene = folder / record.path
+        source = None if record.source is None else folder / record.source
+        iteration, images, scale = record.iteration, record.images, record.scale
         if not Path(scene).exists():
             raise InputError(
                 field_path,
@@ -150,8 +147,8 @@ def find_view(cameras: Cameras | None, name: str, source: str | os.PathLike[str]
 
 
 def record_text_model(field: SemanticField, model: str | os.PathLike[str] | None) -> SemanticField:
-    """``field`` with the local folder of its features' model stored under
-    ``config["text_model"]`` as an absolute path (models stay where they are when fields are
+    """``field`` with the local folder of its features' model in its provenance
+    (``provenance.text_model``) as an absolute path (models stay where they are when fields are
     moved); None stores nothing.
 
     Raises:
@@ -162,7 +159,7 @@ def record_text_model(field: SemanticField, model: str | os.PathLike[str] | None
     folder = Path(model).expanduser().resolve()
     if not folder.is_dir():
         raise InputError(folder, "text model folder not found")
-    return replace(field, config={**field.config, "text_model": str(folder)})
+    return replace(field, provenance=replace(field.provenance, text_model=str(folder)))
 
 
 def field_text_encoder(
@@ -184,10 +181,10 @@ def field_text_encoder(
         ThgsError: the model cannot be loaded (:func:`thgs.text.load_text_encoder`).
     """
     if text_model is None:
-        recorded = field.config.get("text_model")
+        recorded = field.provenance.text_model
         if recorded is not None:
-            if not isinstance(recorded, str) or not recorded.strip():
-                raise InputError(field_path, f"config.text_model is not a path: {recorded!r}")
+            if not recorded.strip():
+                raise InputError(field_path, f"provenance.text_model is not a path: {recorded!r}")
             if not Path(recorded).is_dir():
                 raise InputError(
                     field_path,

@@ -50,6 +50,7 @@ from thgs.lift import LiftConfig, ViewLift, iter_lift_views, views_at_once
 from thgs.lift_cache import lift_cache_path, lift_key, read_cached_lift, write_lift
 from thgs.lift_store import DEFAULT_LIFT_MEMORY, LiftStore, lift_bytes
 from thgs.memory import check_build_memory
+from thgs.provenance import Provenance, installed_version
 from thgs.render import RasterConfig
 from thgs.scene import Cameras, Gaussians
 
@@ -526,18 +527,15 @@ class FieldConfig:
 
 
 def recorded_config(field: SemanticField, source: str = "field") -> FieldConfig:
-    """The :class:`FieldConfig` a field was built with, from its record (the ``scene`` and
-    ``text_model`` records aside), so that it can be rebuilt or its settings read with their
-    types. A setting recorded by no field built before it existed takes the value those builds
-    used (:data:`_BEFORE_RECORDED`); a setting that no longer exists is dropped
-    (:data:`_RETIRED`).
+    """The :class:`FieldConfig` a field was built with, from its record, so that it can be
+    rebuilt or its settings read with their types. A setting recorded by no field built before
+    it existed takes the value those builds used (:data:`_BEFORE_RECORDED`); a setting that no
+    longer exists is dropped (:data:`_RETIRED`).
 
     Raises:
         InputError: the record is not a valid FieldConfig (named by ``source`` and the key).
     """
-    document = copy.deepcopy(
-        {key: value for key, value in field.config.items() if key not in ("scene", "text_model")}
-    )
+    document = copy.deepcopy(field.config)
     for (*stages, name), value in _BEFORE_RECORDED.items():
         node = _stage(document, stages)
         if node is not None and name not in node:
@@ -962,6 +960,7 @@ def build_field(
         fingerprint=scene_fingerprint(lifted.gaussians),
         config=config.to_json(),
         timings=timings,
+        provenance=Provenance(thgs_version=installed_version()),
     ).check("build_field")
     logger.info(
         "semantic field: %s regions at levels 0–3 in %.2f s",

@@ -45,12 +45,13 @@ import logging
 from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 from scipy.special import expit
 
 from thgs._config_json import config_from_json
+from thgs.choices import SelectionMode
 from thgs.confidence import NULL_PHRASES, NullModel, presence_confidence, region_confidence
 from thgs.errors import InputError
 from thgs.field import SemanticField
@@ -80,7 +81,6 @@ logger = logging.getLogger(__name__)
 CANONICAL_PHRASES = ("object", "things", "stuff", "texture")
 """LERF's canonical negatives, encoded in the field's space and passed as ``canonical``."""
 
-SelectionMode = Literal["auto", "paper", "level", "threshold"]
 
 _THRESHOLDS = {MINILM_SPACE: 0.8}
 _CACHED_RESULTS = 256

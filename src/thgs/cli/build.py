@@ -11,10 +11,8 @@ import tyro
 from rich.table import Table
 
 from thgs.choices import Device, FieldPreset, ScenePreset
-from thgs.cli._console import StageBars, setup_logging, stage_progress, stdout, warn
+from thgs.cli._console import StageBars, setup_logging, stage_progress, stdout
 from thgs.cli._outputs import check_output_file, check_output_folder
-from thgs.errors import InputError
-from thgs.scene import Scene, load_scene
 
 __all__ = ["build", "demo"]
 
@@ -35,15 +33,6 @@ def _counts_table(title: str, counts, timings: dict[str, float]) -> Table:
         + ")",
     )
     return table
-
-
-def _unfound_source(loaded: Scene) -> str:
-    """'' or, when the model's cfg_args (gsplat: cfg.yml) names training data that is not here,
-    '; <why>'."""
-    named = loaded.model_source
-    if named is None or named.named is None or named.folder is not None:
-        return ""
-    return f"; {named.describe()}"
 
 
 def build(
@@ -124,24 +113,12 @@ def build(
             workers need thgs installed; needs thgs[cluster]. The field is the same.
         verbose: log every stage with its time.
     """
-    from thgs.device import resolve_device, set_cpu_threads
-    from thgs.field import save_field
-    from thgs.field_scene import record_scene, record_text_model
-    from thgs.guidance import (
-        EMBEDDING_FILE,
-        check_masks,
-        guidance_folder,
-        guidance_space,
-        load_guidance,
-        read_embedding_model,
-        read_embedding_space,
-    )
-    from thgs.pipeline import build_field, chosen_field_config, read_field_config
+    from thgs.device import set_cpu_threads
+    from thgs.pipeline import chosen_field_config, read_field_config
+    from thgs.workflows import BuildRequest, build_field_file
 
     setup_logging(verbose)
     check_output_file(out)
-    if lift_cache is not None and lift_cache.exists() and not lift_cache.is_dir():
-        raise InputError("--lift-cache", f"{lift_cache} is a file; name a folder to keep lifts in")
     if threads is not None:
         set_cpu_threads(threads, "--threads")
     settings = chosen_field_config(
@@ -151,40 +128,22 @@ def build(
         reference=reference,
         repeated_parts=repeated_parts,
     )
-    loaded = load_scene(scene, source=source, iteration=iteration, images=images, scale=scale)
-    if loaded.cameras is None:
-        raise InputError(
-            scene,
-            f"no cameras{_unfound_source(loaded)}; pass --source with COLMAP or transforms.json",
-        )
-    if guidance is None:
-        guidance = guidance_folder(scene, loaded.source)
-        if not guidance.is_dir():
-            raise InputError(
-                guidance,
-                f"language features folder not found{_unfound_source(loaded)}; pass --source "
-                "with the training data folder that holds language_features/, or --guidance",
-            )
-    views = load_guidance(guidance, loaded.cameras, resize=resize, lazy=True)
-    check_masks(views, guidance)
-    recorded = read_embedding_space(guidance)
-    if space is not None and recorded is not None and recorded[0] != space:
-        raise InputError(
-            "--space",
-            f"{space!r}, but {guidance / EMBEDDING_FILE} records {recorded[0]!r}; leave "
-            "--space out, or correct the file if it is wrong",
-        )
-    if space is None or recorded is not None:
-        space = guidance_space(guidance, views)  # checks the file against the features
-    if text_model is not None and not text_model.is_dir():
-        raise InputError("--text-model", f"{text_model} is not a folder")
-    model = text_model if text_model is not None else read_embedding_model(guidance)
-    if model is not None and not model.is_dir():
-        warn(
-            f"{guidance / EMBEDDING_FILE} names the model folder {model}, which does not exist: "
-            "the field will not remember its text model (--text-model DIR records one)"
-        )
-        model = None
+    request = BuildRequest(
+        scene=scene,
+        out=out,
+        config=settings,
+        guidance=guidance,
+        source=source,
+        iteration=iteration,
+        images=images,
+        scale=scale,
+        resize=resize,
+        space=space,
+        text_model=text_model,
+        device=device,
+        lift_cache=lift_cache,
+        ray=ray is not None,
+    )
     with contextlib.ExitStack() as stack:
         if ray is not None:
             from thgs.cli.suite import LOCAL_RAY
@@ -192,28 +151,10 @@ def build(
 
             stack.enter_context(connect_ray(None if ray == LOCAL_RAY else ray))
         bar = stack.enter_context(stage_progress())
-        field = build_field(
-            loaded.to(resolve_device(device)),
-            views,
-            settings,
-            space=space,
-            progress=StageBars(bar),
-            lift_cache=lift_cache,
-            ray=ray is not None,
-        )
-    field = record_scene(
-        field,
-        scene,
-        source=loaded.source,
-        iteration=iteration,
-        images=images,
-        scale=scale,
-        field_path=out,
-    )
-    field = record_text_model(field, model)
-    save_field(out, field)
+        built = build_field_file(request, progress=StageBars(bar))
+    field = built.field
     stdout.print(_counts_table(f"thgs build {scene}", field.region_counts, field.timings))
-    stdout.print(f"wrote {out} ({out.stat().st_size / 1e6:.1f} MB, space {space})")
+    stdout.print(f"wrote {out} ({out.stat().st_size / 1e6:.1f} MB, space {built.space})")
     stdout.print(f"explore it in a browser: thgs view {out}")
 
 

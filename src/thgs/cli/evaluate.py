@@ -82,18 +82,14 @@ def evaluate(
             default; labels of the same aspect ratio at another size are always scaled).
         verbose: log what is loaded and how long it takes.
     """
-    from thgs._atomic import atomic_files, atomic_output
-    from thgs.eval.dataset import check_ground_truth_scene, evaluate_dataset, find_ground_truth
+    from thgs.eval.dataset import find_ground_truth
     from thgs.eval.protocols import get_protocol, sources
-    from thgs.export import write_json
-    from thgs.field_scene import field_text_encoder, open_field_scene
-    from thgs.pipeline import lifted_raster
-    from thgs.query import FieldQuery
+    from thgs.workflows import EvalRequest, eval_table_path, evaluate_field_file
 
     setup_logging(verbose)
     out = out if out is not None else field.with_suffix(".eval.json")
     check_output_file(out)
-    check_output_file(out.with_suffix(".md"))
+    check_output_file(eval_table_path(out))
     for name in protocol:
         get_protocol(name)  # an unknown name stops here, before any loading
     ground_truth = find_ground_truth(
@@ -106,34 +102,25 @@ def evaluate(
             f"holds no benchmark ground truth ({places}); name it with --labels, "
             "--segmentations, --scannet or --openhype",
         )
-    semantic, loaded = open_field_scene(field, scene, device=device)
-    if not other_scene:
-        check_ground_truth_scene(dataset, loaded.cameras)
-    encoder = field_text_encoder(semantic, field, text_model)
-    engine = FieldQuery(semantic, encoder, source=str(field))
+    request = EvalRequest(
+        dataset=dataset,
+        field=field,
+        out=out,
+        protocols=protocol or None,
+        scannet_level=scannet_level,
+        scene=scene,
+        text_model=text_model,
+        device=device,
+        other_scene=other_scene,
+        rescale_labels=rescale_labels,
+    )
     with stage_progress() as bar:
-        report = evaluate_dataset(
-            ground_truth,
-            engine,
-            loaded.gaussians,
-            loaded.cameras,
-            protocols=protocol or None,
-            scannet_level=scannet_level,
-            raster=lifted_raster(semantic, str(field)),
-            progress=StageBars(bar),
-            rescale_labels=rescale_labels,
-        )
-    out = out if out is not None else field.with_suffix(".eval.json")
-    document = report.to_json()
-    document["info"] = {**document["info"], "dataset": str(dataset), "field": str(field)}
-    with atomic_files([out, out.with_suffix(".md")]) as (json_path, table_path):
-        write_json(json_path, document)
-        with atomic_output(table_path, "w") as handle:
-            handle.write(report.table() + "\n")
+        outcome = evaluate_field_file(request, ground_truth, progress=StageBars(bar))
+    report = outcome.report
     stdout.print(_report_table(f"{ground_truth.scene_name}: {field.name}", report))
     for note in report.notes():
         stdout.print(note, highlight=False)
-    stdout.print(f"report: {out} (table: {out.with_suffix('.md')})")
+    stdout.print(f"report: {outcome.json_path} (table: {outcome.table_path})")
 
 
 def evaluate_mean(

@@ -2,47 +2,18 @@
 
 from __future__ import annotations
 
-import contextlib
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated
 
 import tyro
 from rich.table import Table
 
-from thgs.choices import Device
-from thgs.cli._console import settings_as_flags, setup_logging, stdout
+from thgs.choices import Device, SelectionMode
+from thgs.cli._console import setup_logging, stdout
 from thgs.cli._outputs import check_output_folder
 from thgs.errors import InputError, ThgsError
 
 __all__ = ["export", "pick", "query"]
-
-Mode = Literal["auto", "paper", "level", "threshold"]
-
-
-def _query_config(
-    mode: Mode | None,
-    level: int | None,
-    top: int,
-    threshold: float | None,
-    min_gaussians: int | None,
-):
-    from thgs.query import QueryConfig
-
-    if level is not None and level not in (1, 2, 3):
-        raise InputError("--level", f"must be 1 sub-parts, 2 parts or 3 objects, got {level}")
-    if mode is None:
-        mode = "auto" if level is None else "level"
-    if mode in ("auto", "paper") and level is not None:
-        searched = "levels 1–3" if mode == "auto" else "levels 2 and 3"
-        raise InputError("--level", f"the {mode} mode searches {searched}; use --mode level")
-    with settings_as_flags("level", "top", "threshold", "min_gaussians"):
-        return QueryConfig(
-            mode=mode,
-            level=3 if level is None else level,
-            top=top,
-            threshold=threshold,
-            min_gaussians=min_gaussians,
-        ).check()
 
 
 def _field_query(field_path: Path, field, text_model: Path | None, config):
@@ -80,7 +51,7 @@ def query(
     texts: tuple[str, ...],
     /,
     *,
-    mode: Mode | None = None,
+    mode: SelectionMode | None = None,
     level: int | None = None,
     top: int = 1,
     threshold: float | None = None,
@@ -130,6 +101,7 @@ def query(
     from thgs.field_scene import find_view, open_field_scene
     from thgs.pipeline import lifted_raster
     from thgs.results import write_query_results
+    from thgs.workflows import query_config
 
     setup_logging(verbose)
     if out is not None:
@@ -140,7 +112,7 @@ def query(
         raise InputError("--views", "masks and relevancy maps are written to files: pass --out")
     if relevancy and not views:
         raise InputError("--relevancy", "name the views to draw in with --views")
-    config = _query_config(mode, level, top, threshold, min_gaussians)
+    config = query_config(mode, level, top, threshold, min_gaussians)
     if views:
         semantic, loaded = open_field_scene(field, scene, device=device)
     else:
@@ -249,7 +221,7 @@ def export(
     *,
     out: Annotated[Path, tyro.conf.arg(aliases=("-o",))],
     query: tuple[str, ...] = (),
-    mode: Mode | None = None,
+    mode: SelectionMode | None = None,
     level: int | None = None,
     top: int = 1,
     threshold: float | None = None,
@@ -282,46 +254,25 @@ def export(
             for a field that records none, the Hugging Face cache).
         verbose: log what is loaded.
     """
-    from thgs.export import write_labels, write_region_ply
-    from thgs.field_scene import open_field_scene
-    from thgs.hierarchy.levels import LEVEL_NAMES
-    from thgs.results import write_query_selections
+    from thgs.query import QueryConfig
+    from thgs.workflows import ExportRequest, export_field_file, query_config
 
     setup_logging(verbose)
     check_output_folder(out)
-    if not query and color_level is None and not labels:
-        raise InputError(
-            "thgs export", "nothing to export: pass --query, --color-level or --labels"
-        )
-    if color_level is not None and color_level not in (0, 1, 2, 3):
-        raise InputError("--color-level", f"must be 0, 1, 2 or 3, got {color_level}")
-    config = _query_config(mode, level, top, threshold, min_gaussians) if query else None
-    semantic, loaded = open_field_scene(field, scene)
-    created = not out.exists()
-    written: list[Path] = []
-    regions = [f"regions-{name}" for name in LEVEL_NAMES]  # never a query's name
-    try:
-        if query:
-            fq = _field_query(field, semantic, text_model, config)
-            selections, paths = write_query_selections(
-                out, fq, query, loaded.gaussians, field_name=str(field), taken=regions
-            )
-            written += paths
-        if color_level is not None:
-            path = out / f"{regions[color_level]}.ply"
-            write_region_ply(path, loaded.gaussians, semantic, color_level, seed=seed)
-            written.append(path)
-        if labels:
-            for path in (out / "labels.npy", out / "labels.json"):
-                write_labels(path, semantic)
-                written.append(path)
-    except BaseException:
-        for path in written:  # the whole set or none of it
-            path.unlink(missing_ok=True)
-        if created:
-            with contextlib.suppress(OSError):  # only if nothing else was put there
-                out.rmdir()
-        raise
+    request = ExportRequest(
+        field=field,
+        out=out,
+        queries=query,
+        query=query_config(mode, level, top, threshold, min_gaussians) if query else QueryConfig(),
+        color_level=color_level,
+        labels=labels,
+        seed=seed,
+        scene=scene,
+        text_model=text_model,
+    )
+    outcome = export_field_file(request)
     if query:
-        stdout.print(_selection_table(f"thgs export {field} ({config.mode})", semantic, selections))
-    stdout.print(f"wrote {len(written)} files to {out}/: " + ", ".join(p.name for p in written))
+        title = f"thgs export {field} ({request.query.mode})"
+        stdout.print(_selection_table(title, outcome.field, outcome.selections))
+    files = outcome.files
+    stdout.print(f"wrote {len(files)} files to {out}/: " + ", ".join(p.name for p in files))

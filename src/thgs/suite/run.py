@@ -344,66 +344,34 @@ def _torch_device(device: str) -> str:
 
 
 def _build(scene: SuiteScene, folder: Path, config: SuiteConfig) -> dict[str, Any]:
-    from thgs.device import resolve_device
-    from thgs.field import save_field
-    from thgs.field_scene import record_scene, record_text_model
-    from thgs.guidance import check_masks, guidance_space, load_guidance, read_embedding_model
-    from thgs.pipeline import build_field
-    from thgs.scene import load_scene
+    from thgs.workflows import BuildRequest, build_field_file
 
     assert scene.model is not None
-    source = None if scene.model == scene.data else scene.data
-    loaded = load_scene(scene.model, source=source)
-    if loaded.cameras is None:
-        raise InputError(scene.model, "no cameras (neither the data folder's nor cameras.json)")
-    guidance = _guidance(scene, folder)
-    views = load_guidance(guidance, loaded.cameras, lazy=True)
-    check_masks(views, guidance)
-    space = guidance_space(guidance, views)
-    model = read_embedding_model(guidance)
-    if model is not None and not model.is_dir():
-        logger.warning("%s: its text model folder %s does not exist", guidance, model)
-        model = None
-    built = build_field(
-        loaded.to(resolve_device(config.device)),
-        views,
-        config.field_config(scene.benchmark),
-        space=space,
+    request = BuildRequest(
+        scene=scene.model,
+        out=folder / FIELD,
+        config=config.field_config(scene.benchmark),
+        guidance=_guidance(scene, folder),
+        source=None if scene.model == scene.data else scene.data,
+        device=config.device,
     )
-    path = folder / FIELD
-    built = record_scene(built, scene.model, source=source, field_path=path)
-    built = record_text_model(built, model)
-    save_field(path, built)
+    built = build_field_file(request).field
     return {"timings": dict(built.timings), "regions": list(built.region_counts)}
 
 
 def _evaluate(scene: SuiteScene, folder: Path, config: SuiteConfig) -> dict[str, Any]:
-    from thgs.eval.dataset import check_ground_truth_scene, evaluate_dataset
-    from thgs.field_scene import field_text_encoder, open_field_scene
-    from thgs.pipeline import lifted_raster
-    from thgs.query import FieldQuery
+    from thgs.workflows import EvalRequest, evaluate_field_file
 
-    path = folder / FIELD
-    semantic, loaded = open_field_scene(path, device=config.device)
-    check_ground_truth_scene(scene.data, loaded.cameras)
-    encoder = field_text_encoder(semantic, path)
-    engine = FieldQuery(semantic, encoder, source=str(path))
-    if config.selection == "paper":
-        engine = engine.using(mode="paper", levels=None)
-    report = evaluate_dataset(
-        scene.ground_truth,
-        engine,
-        loaded.gaussians,
-        loaded.cameras,
+    request = EvalRequest(
+        dataset=scene.data,
+        field=folder / FIELD,
+        out=folder / EVAL,
         protocols=scene.protocols,
+        selection=config.selection,
         scannet_level=config.scannet_level,
-        raster=lifted_raster(semantic, str(path)),
+        device=config.device,
     )
-    document = report.to_json()
-    document["info"] = {**document["info"], "dataset": str(scene.data), "field": str(path)}
-    write_json(folder / EVAL, document)
-    with atomic_output((folder / EVAL).with_suffix(".md"), "w") as handle:
-        handle.write(report.table() + "\n")
+    evaluate_field_file(request, scene.ground_truth)
     return {}
 
 
