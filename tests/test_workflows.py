@@ -27,6 +27,7 @@ from thgs.workflows import (
 )
 
 
+@pytest.mark.slow
 def test_the_library_build_writes_the_commands_bytes(small_dataset, small_field, tmp_path):
     out = tmp_path / "library.thgs"
     built = build_field_file(BuildRequest(small_dataset, out, FieldConfig.lerf(), device="cpu"))

@@ -8,7 +8,9 @@ folder, preprocessed, built and evaluated where needed, and one report in the pa
 ``thgs suite ROOT -o OUT`` does all three (docs/suite.md).
 """
 
+from thgs.suite.config import SuiteConfig
 from thgs.suite.discover import BENCHMARK_PROTOCOLS, BENCHMARKS, SuiteScene, find_suite
+from thgs.suite.plan import STAGES, StagePlan, plan_scene, scene_folder
 from thgs.suite.report import (
     HEADLINES,
     SceneResult,
@@ -16,15 +18,7 @@ from thgs.suite.report import (
     build_stage_group,
     write_suite_report,
 )
-from thgs.suite.run import (
-    STAGES,
-    StagePlan,
-    SuiteConfig,
-    plan_scene,
-    run_scene,
-    run_suite,
-    scene_folder,
-)
+from thgs.suite.run import run_scene, run_suite
 
 __all__ = [
     "BENCHMARKS",

@@ -1,22 +1,10 @@
-"""Run a suite: for every scene, whatever of preprocess → build → eval is missing or stale.
+"""Run a suite: for every scene, whatever of preprocess → build → eval is missing or stale
+(:func:`thgs.suite.plan_scene` says which, :mod:`thgs.suite.plan` how it is decided).
 
-Outputs of scene ``<benchmark>/<scene>`` go to ``OUT/<benchmark>/<scene>/``:
-
-- ``language_features/`` — only for a scene without its own (the user's dataset is never
-  written into): SAM masks and CLIP features (:func:`thgs.guidance.preprocess.preprocess_images`);
-- ``field.thgs`` — the semantic field (:func:`thgs.pipeline.build_field`);
-- ``eval.json``, ``eval.md`` — the scene's evaluation (:func:`thgs.eval.evaluate_dataset`);
-- ``stages.json`` — one stamp per finished stage: a digest of the stage's inputs (settings, and
-  the size and modification time of every input file), the size and modification time of its
-  outputs, and its recorded times;
-- ``error.log`` — the traceback of the last failure, if the scene failed.
-
-A stage is **current** when its outputs exist as its stamp recorded them (a truncated or replaced
-``field.thgs`` is built again; stamps written before outputs were recorded are trusted), its
-stamp's digest equals its inputs' digest now, and no stage before it ran in this run; a current
-stage is skipped. So a changed field config
-reruns build and eval, a changed selection mode only eval, and a suite interrupted anywhere
-(every output is written atomically, the stamp after it) resumes where it stopped.
+Each stage is one library action: preprocessing :func:`thgs.guidance.preprocess.preprocess_images`,
+the build :func:`thgs.workflows.build_field_file`, the evaluation
+:func:`thgs.workflows.evaluate_field_file`; a finished stage is stamped after its outputs are
+written.
 
 A scene that fails (bad input, any exception) is reported with a one-line message and its
 traceback in ``error.log``; the other scenes go on. In-process (the default) the scenes run one
@@ -28,292 +16,47 @@ aside (:meth:`thgs.suite.SuiteReport.comparable`).
 from __future__ import annotations
 
 import contextlib
-import hashlib
-import json
 import logging
 import os
 import time
 import traceback
 from collections.abc import Callable, Iterator, Sequence
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import replace
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 from thgs._atomic import atomic_output
 from thgs._json import load_json
-from thgs.choices import DEVICES
 from thgs.errors import InputError, ThgsError
-from thgs.export import write_json
-from thgs.guidance.preprocess.run import PreprocessConfig
-from thgs.guidance.preprocess.sam import DEFAULT_SAM
-from thgs.pipeline import FieldConfig, chosen_field_config
+from thgs.suite.config import SuiteConfig
 from thgs.suite.discover import SuiteScene
+from thgs.suite.plan import (
+    EVAL,
+    FIELD,
+    GUIDANCE,
+    STAGES,
+    plan_scene,
+    read_stamps,
+    scene_folder,
+    scene_guidance,
+    stage_digest,
+    write_stamp,
+)
 from thgs.suite.report import SceneResult, SuiteReport
-from thgs.text import LANGSPLAT_SPACE
 
 __all__ = [
-    "STAGES",
-    "StagePlan",
-    "SuiteConfig",
-    "plan_scene",
     "run_scene",
     "run_suite",
-    "scene_folder",
 ]
 
 logger = logging.getLogger(__name__)
-
-STAGES = ("preprocess", "build", "eval")
-"""A scene's stages, in the order they run."""
-
-STAMPS = "stages.json"
-FIELD = "field.thgs"
-EVAL = "eval.json"
-ERROR_LOG = "error.log"
-GUIDANCE = "language_features"
-
-_CAMERA_FILES = (
-    "sparse",
-    "transforms.json",
-    "transforms_train.json",
-    "transforms_test.json",
-    "cameras.json",
-)
-_MODEL_FILES = ("point_cloud", "ckpts", "cameras.json", "cfg_args", "cfg.yml", "cfg.json")
 
 Progress = Callable[[str, str], None]
 """``progress(scene key, state)``: a scene's state as the suite advances (``"preprocess"``,
 ``"build"``, ``"eval"`` when a stage starts; ``"done"``, ``"current"`` or ``"failed: …"``)."""
 
 
-@dataclass(frozen=True)
-class SuiteConfig:
-    """How every scene of a suite is preprocessed, built and evaluated.
-
-    Attributes:
-        preset: the field-building preset of every scene (:data:`thgs.pipeline.PRESETS`);
-            None: each benchmark's own, as in the paper (``3dovs`` for 3D-OVS scenes, ``lerf``
-            for the others).
-        config: a whole field config for every scene instead of a preset (``--config``).
-        settings: single settings changed on top, ``"dotted.key=VALUE"``
-            (:meth:`thgs.pipeline.FieldConfig.with_settings`).
-        selection: the query selection scored as the headline: ``"auto"`` (thgs's) or
-            ``"paper"`` (the paper's top-3); LERF-OVS reports the paper's rule beside it either
-            way (``lerf-paper``).
-        device: where to build and evaluate: ``auto``, ``cpu``, ``cuda`` or ``mps``.
-        sam: SAM for scenes without language features (a local folder or a Hugging Face id).
-        clip: CLIP for them, likewise.
-        preprocess: the preprocessing settings (:class:`thgs.guidance.preprocess.PreprocessConfig`).
-        scannet_level: the field level whose features classify ScanNet points.
-    """
-
-    preset: str | None = None
-    config: FieldConfig | None = None
-    settings: tuple[str, ...] = ()
-    selection: Literal["auto", "paper"] = "auto"
-    device: str = "cpu"
-    sam: str = DEFAULT_SAM
-    clip: str = LANGSPLAT_SPACE
-    preprocess: PreprocessConfig = field(default_factory=PreprocessConfig)
-    scannet_level: int = 3
-
-    def check(self) -> SuiteConfig:
-        """Refuse an unknown preset or selection, a preset together with a config, or a bad
-        ``--set``; returns ``self``.
-
-        Raises:
-            InputError: naming the option.
-        """
-        if self.selection not in ("auto", "paper"):
-            raise InputError("--selection", f"must be auto or paper, got {self.selection!r}")
-        if self.device not in DEVICES:
-            raise InputError("--device", f"must be auto, cpu, cuda or mps, got {self.device!r}")
-        for benchmark in ("lerf_ovs", "3dovs"):  # the preset, the config and --set
-            self.field_config(benchmark)
-        return self
-
-    def field_config(self, benchmark: str) -> FieldConfig:
-        """The field config of a scene of ``benchmark``."""
-        preset = self.preset
-        if preset is None and self.config is None:
-            preset = "3dovs" if benchmark == "3dovs" else "lerf"
-        return chosen_field_config(preset, self.config, self.settings)
-
-    def to_json(self) -> dict[str, Any]:
-        """The settings as JSON (the report's "settings")."""
-        return {
-            "preset": self.preset,
-            "config": None if self.config is None else self.config.to_json(),
-            "settings": list(self.settings),
-            "selection": self.selection,
-            "device": self.device,
-            "sam": self.sam,
-            "clip": self.clip,
-            "preprocess": json.loads(json.dumps(asdict(self.preprocess))),
-            "scannet_level": self.scannet_level,
-        }
-
-
-@dataclass(frozen=True)
-class StagePlan:
-    """What a stage of a scene will do and why.
-
-    Attributes:
-        stage: one of :data:`STAGES`.
-        action: ``"run"``, ``"current"`` (skipped: outputs current) or ``"not needed"`` (the
-            scene's own language features; no preprocessing).
-        reason: why, in words.
-    """
-
-    stage: str
-    action: Literal["run", "current", "not needed"]
-    reason: str
-
-
-def scene_folder(out: str | os.PathLike[str], scene: SuiteScene) -> Path:
-    """``OUT/<benchmark>/<scene>``: where a scene's outputs go."""
-    return Path(out) / scene.benchmark / scene.name
-
-
-# --- digests of stage inputs ----------------------------------------------------------------------
-
-
-def _files_state(path: Path, names: Sequence[str] | None = None) -> list[list[Any]]:
-    """``[relative path, size, mtime_ns]`` of every file under ``path`` (or of its entries
-    ``names``), sorted; following links."""
-    state: list[list[Any]] = []
-    roots = [path] if names is None else [path / name for name in names]
-    for top in roots:
-        if top.is_file():
-            info = top.stat()
-            state.append([os.path.relpath(top, path), info.st_size, info.st_mtime_ns])
-            continue
-        for folder, _, files in os.walk(top, followlinks=True):
-            for name in files:
-                file = Path(folder) / name
-                with contextlib.suppress(FileNotFoundError):
-                    info = file.stat()
-                    state.append([os.path.relpath(file, path), info.st_size, info.st_mtime_ns])
-    return sorted(state)
-
-
-def _digest(value: Any) -> str:
-    return hashlib.sha256(json.dumps(value, sort_keys=True).encode()).hexdigest()
-
-
-def _guidance(scene: SuiteScene, folder: Path) -> Path:
-    return scene.guidance if scene.guidance is not None else folder / GUIDANCE
-
-
-def _inputs(scene: SuiteScene, folder: Path, config: SuiteConfig, stage: str) -> dict[str, Any]:
-    """The inputs a stage's digest is made of."""
-    if stage == "preprocess":
-        assert scene.images is not None
-        return {
-            "sam": config.sam,
-            "clip": config.clip,
-            "preprocess": config.to_json()["preprocess"],
-            "images": _files_state(scene.images),
-        }
-    assert scene.model is not None
-    build = {
-        "field": config.field_config(scene.benchmark).to_json(),
-        "model": _files_state(scene.model, _MODEL_FILES),
-        "cameras": _files_state(scene.data, _CAMERA_FILES),
-        "guidance": _files_state(_guidance(scene, folder)),
-    }
-    if stage == "build":
-        return build
-    return {
-        "build": _digest(build),
-        "field": _files_state(folder, (FIELD,)),
-        "selection": config.selection,
-        "protocols": list(scene.protocols),
-        "scannet_level": config.scannet_level,
-        "ground_truth": {
-            source: _files_state(path) for source, path in sorted(scene.ground_truth.paths.items())
-        },
-    }
-
-
-def _outputs_exist(folder: Path, scene: SuiteScene, stage: str) -> bool:
-    if stage == "preprocess":
-        return (folder / GUIDANCE).is_dir()
-    if stage == "build":
-        return (folder / FIELD).is_file()
-    return (folder / EVAL).is_file() and (folder / EVAL).with_suffix(".md").is_file()
-
-
-def _output_state(folder: Path, stage: str) -> list[list[Any]]:
-    """The size and modification time of the stage's outputs (:func:`_files_state`)."""
-    if stage == "preprocess":
-        return _files_state(folder, (GUIDANCE,))
-    if stage == "build":
-        return _files_state(folder, (FIELD,))
-    return _files_state(folder, (EVAL, Path(EVAL).with_suffix(".md").name))
-
-
-def _read_stamps(folder: Path) -> dict[str, Any]:
-    path = folder / STAMPS
-    if not path.is_file():
-        return {}
-    try:
-        stamps = load_json(path)
-    except InputError as error:
-        logger.warning("%s; its stages run again", error)
-        return {}
-    return stamps if isinstance(stamps, dict) else {}
-
-
-def _write_stamp(folder: Path, stage: str, stamp: dict[str, Any]) -> None:
-    """Record ``stamp`` for ``stage``, with its outputs' state as they are now, and drop the
-    stamps of the stages after it."""
-    stamps = _read_stamps(folder)
-    stamps[stage] = {**stamp, "outputs": _output_state(folder, stage)}
-    for later in STAGES[STAGES.index(stage) + 1 :]:
-        stamps.pop(later, None)
-    write_json(folder / STAMPS, stamps)
-
-
-def _stage_plan(
-    scene: SuiteScene, folder: Path, config: SuiteConfig, stage: str, stamps: dict, earlier: bool
-) -> StagePlan:
-    """The plan of one stage, given whether an earlier stage runs."""
-    if stage == "preprocess" and scene.guidance is not None:
-        return StagePlan(stage, "not needed", "the scene has language_features")
-    if earlier:
-        return StagePlan(stage, "run", "an earlier stage runs")
-    if not _outputs_exist(folder, scene, stage):
-        return StagePlan(stage, "run", "no output yet")
-    stamp = stamps.get(stage) if isinstance(stamps.get(stage), dict) else {}
-    recorded = stamp.get("digest")
-    if recorded is None:
-        return StagePlan(stage, "run", "output without a stamp (interrupted?)")
-    if recorded != _digest(_inputs(scene, folder, config, stage)):
-        return StagePlan(stage, "run", "its inputs or settings changed")
-    if "outputs" in stamp and stamp["outputs"] != _output_state(folder, stage):
-        return StagePlan(stage, "run", "its output changed since it was written (damaged?)")
-    return StagePlan(stage, "current", "output current")
-
-
-def plan_scene(
-    scene: SuiteScene, out: str | os.PathLike[str], config: SuiteConfig
-) -> tuple[StagePlan, ...]:
-    """What :func:`run_scene` would do for ``scene`` now, stage by stage (``thgs suite
-    --dry-run``). A scene with problems plans nothing (its problems are the reason).
-
-    Raises:
-        InputError: ``scene`` has problems (the message lists them).
-    """
-    if scene.problems:
-        raise InputError(scene.data, "; ".join(scene.problems))
-    folder = scene_folder(out, scene)
-    stamps = _read_stamps(folder)
-    plans: list[StagePlan] = []
-    for stage in STAGES:
-        earlier = any(plan.action == "run" for plan in plans)
-        plans.append(_stage_plan(scene, folder, config, stage, stamps, earlier))
-    return tuple(plans)
+ERROR_LOG = "error.log"
 
 
 # --- the stages -----------------------------------------------------------------------------------
@@ -351,7 +94,7 @@ def _build(scene: SuiteScene, folder: Path, config: SuiteConfig) -> dict[str, An
         scene=scene.model,
         out=folder / FIELD,
         config=config.field_config(scene.benchmark),
-        guidance=_guidance(scene, folder),
+        guidance=scene_guidance(scene, folder),
         source=None if scene.model == scene.data else scene.data,
         device=config.device,
     )
@@ -393,7 +136,7 @@ def _one_line(error: BaseException) -> str:
 
 
 def _recorded(scene: SuiteScene, folder: Path, stages: dict[str, str], error: str | None):
-    stamps = _read_stamps(folder)
+    stamps = read_stamps(folder)
     build = stamps.get("build", {})
     return SceneResult(
         scene.benchmark,
@@ -459,8 +202,8 @@ def run_scene(
             else:
                 extra = _evaluate(scene, folder, config)
             seconds = time.perf_counter() - started
-            digest = _digest(_inputs(scene, folder, config, stage))
-            _write_stamp(folder, stage, {"digest": digest, "seconds": seconds, **extra})
+            digest = stage_digest(scene, folder, config, stage)
+            write_stamp(folder, stage, {"digest": digest, "seconds": seconds, **extra})
             stages[stage] = "ran"
         result = _recorded(scene, folder, stages, None)
     except Exception as error:  # any failure of one scene is reported; the others go on
@@ -581,11 +324,11 @@ def _preprocess_on_ray(scenes, out, config, ray, progress) -> dict[str, str | No
             outcome[scene.key] = f"preprocessing on Ray: {failure}"
             continue
         folder = scene_folder(out, scene)
-        digest = _digest(_inputs(scene, folder, config, "preprocess"))
+        digest = stage_digest(scene, folder, config, "preprocess")
         extra = {"images": len(target.jobs)}
         if summary is not None:
             extra["masks"] = list(summary.masks)
-        _write_stamp(folder, "preprocess", {"digest": digest, "seconds": seconds, **extra})
+        write_stamp(folder, "preprocess", {"digest": digest, "seconds": seconds, **extra})
         outcome[scene.key] = None
     return outcome
 
