@@ -19,12 +19,18 @@ SHARED_DATA = REPO.parent / "shared" / "data"
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     """Tests on a local Ray or in a browser are slow by nature: every test that uses a
-    ``local_ray`` fixture is marked ``ray``, and every ``ray`` or ``browser`` test ``slow``."""
+    ``local_ray`` fixture is marked ``ray``, and every ``ray`` or ``browser`` test ``slow``.
+
+    The modules holding Ray tests run last, each whole and in its order (so their module
+    fixtures are made once): the session's one Ray, once started, keeps processes alive on the
+    machine's cores until the session ends, and no other test should run beside them."""
     for item in items:
         if "local_ray" in getattr(item, "fixturenames", ()):
             item.add_marker(pytest.mark.ray)
         if item.get_closest_marker("ray") or item.get_closest_marker("browser"):
             item.add_marker(pytest.mark.slow)
+    with_ray = {item.path for item in items if item.get_closest_marker("ray")}
+    items.sort(key=lambda item: item.path in with_ray)  # stable: the order is kept otherwise
 
 
 _SESSION_RAY: list = []

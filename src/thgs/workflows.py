@@ -10,6 +10,9 @@ are written the same way whoever asks:
   its markdown table, written together (:class:`EvalRequest` → :class:`EvalOutcome`);
 - :func:`export_field_file` — selections as PLYs, the scene coloured by region, labels
   (:class:`ExportRequest` → :class:`ExportOutcome`), the whole set or none of it;
+- :func:`catalog_field_file` — a whole vocabulary answered in one pass: one label per Gaussian,
+  one PLY per phrase found, the phrase table (:class:`CatalogRequest` → :class:`CatalogOutcome`,
+  :mod:`thgs.catalog`);
 - :func:`query_config` — the query options of the commands (mode, level, top, threshold,
   smallest region) checked together and turned into a :class:`thgs.query.QueryConfig`.
 
@@ -38,16 +41,20 @@ from thgs.pipeline import FieldConfig
 from thgs.query import QueryConfig, Selection
 
 if TYPE_CHECKING:
+    from thgs.catalog import Catalog
     from thgs.eval.dataset import EvalReport, GroundTruth
 
 __all__ = [
     "BuildRequest",
     "BuiltField",
+    "CatalogOutcome",
+    "CatalogRequest",
     "EvalOutcome",
     "EvalRequest",
     "ExportOutcome",
     "ExportRequest",
     "build_field_file",
+    "catalog_field_file",
     "eval_table_path",
     "evaluate_field_file",
     "export_field_file",
@@ -477,3 +484,65 @@ def export_field_file(request: ExportRequest) -> ExportOutcome:
                 out.rmdir()
         raise
     return ExportOutcome(semantic, selections, tuple(written))
+
+
+# --- catalog --------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class CatalogRequest:
+    """A vocabulary to answer on a field, and where the catalog goes.
+
+    Attributes:
+        field: the field file.
+        vocabulary: the phrase file (:func:`thgs.catalog.read_vocabulary`: one phrase per line).
+        out: the folder to write into (created if missing; files of the same names replaced).
+        query: how each phrase selects (default: the automatic selection).
+        scene: the scene the field was built on, if not where the field records.
+        text_model: the text model's folder, instead of the one the field records.
+    """
+
+    field: Path
+    vocabulary: Path
+    out: Path
+    query: QueryConfig = QueryConfig()
+    scene: Path | None = None
+    text_model: Path | None = None
+
+
+@dataclass(frozen=True)
+class CatalogOutcome:
+    """What :func:`catalog_field_file` found and wrote.
+
+    Attributes:
+        catalog: every phrase's selection and the label of every Gaussian.
+        files: every file written (``labels.npy``, ``labels.ply``, ``catalog.json``,
+            ``catalog.md``, then one PLY per phrase found).
+    """
+
+    catalog: Catalog
+    files: tuple[Path, ...]
+
+
+def catalog_field_file(request: CatalogRequest) -> CatalogOutcome:
+    """Read the vocabulary, answer every phrase on the field and write the catalog
+    (:mod:`thgs.catalog`): the whole set, or none of it.
+
+    Raises:
+        InputError: a vocabulary file that is missing, not text, empty or repeats a phrase
+            (named before the field is opened); a field or scene that cannot be loaded; a file
+            that cannot be written.
+    """
+    from thgs.catalog import catalog_field, read_vocabulary, write_catalog
+    from thgs.field_scene import field_text_encoder, open_field_scene
+    from thgs.query import FieldQuery
+
+    phrases = read_vocabulary(request.vocabulary)
+    semantic, loaded = open_field_scene(request.field, request.scene)
+    encoder = field_text_encoder(semantic, request.field, request.text_model)
+    engine = FieldQuery(semantic, encoder, request.query, source=str(request.field))
+    catalog = catalog_field(engine, phrases)
+    files = write_catalog(
+        request.out, catalog, loaded.gaussians, engine, field_name=str(request.field)
+    )
+    return CatalogOutcome(catalog, files)

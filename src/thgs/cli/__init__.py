@@ -13,7 +13,7 @@ from thgs.cli.bench import bench
 from thgs.cli.build import build, demo
 from thgs.cli.evaluate import evaluate, evaluate_mean
 from thgs.cli.preprocess import preprocess
-from thgs.cli.query import export, pick, query
+from thgs.cli.query import catalog, export, pick, query
 from thgs.cli.scene import info, synth
 from thgs.cli.suite import bare_ray_flag, suite
 from thgs.cli.view import view
@@ -22,6 +22,7 @@ from thgs.errors import ThgsError
 __all__ = [
     "bench",
     "build",
+    "catalog",
     "demo",
     "entrypoint",
     "evaluate",
@@ -44,6 +45,7 @@ COMMANDS: dict[str, Callable[..., None]] = {
     "query": query,
     "pick": pick,
     "export": export,
+    "catalog": catalog,
     "view": view,
     "eval": evaluate,
     "eval-mean": evaluate_mean,

@@ -13,7 +13,7 @@ from thgs.cli._console import setup_logging, stdout
 from thgs.cli._outputs import check_output_folder
 from thgs.errors import InputError, ThgsError
 
-__all__ = ["export", "pick", "query"]
+__all__ = ["catalog", "export", "pick", "query"]
 
 
 def _field_query(field_path: Path, field, text_model: Path | None, config):
@@ -276,3 +276,78 @@ def export(
         stdout.print(_selection_table(title, outcome.field, outcome.selections))
     files = outcome.files
     stdout.print(f"wrote {len(files)} files to {out}/: " + ", ".join(p.name for p in files))
+
+
+def catalog(
+    field: Annotated[Path, tyro.conf.arg(metavar="FIELD")],
+    vocabulary: Annotated[Path, tyro.conf.arg(metavar="VOCABULARY")],
+    /,
+    *,
+    out: Annotated[Path, tyro.conf.arg(aliases=("-o",))],
+    mode: SelectionMode | None = None,
+    level: int | None = None,
+    top: int = 1,
+    threshold: float | None = None,
+    min_gaussians: int | None = None,
+    scene: Path | None = None,
+    text_model: Path | None = None,
+    verbose: bool = False,
+) -> None:
+    """Answer a whole vocabulary in one pass: one label per Gaussian, one PLY per phrase found.
+
+    Every phrase is selected as thgs query would (the automatic selection by default); each
+    Gaussian gets the phrase that claims it most confidently (ties: the smaller region, then
+    the phrase listed first), -1 if none. Writes labels.npy (int32 [N], in the scene PLY's
+    order), labels.ply (the scene with a label property), <phrase>.ply for each phrase found,
+    catalog.json and catalog.md (what was found, confidences, why the others were not).
+
+    Args:
+        field: the field file (thgs build).
+        vocabulary: a text file with one phrase per line (blank lines and # comments skipped).
+        out: folder to write into.
+        mode: see thgs query.
+        level: see thgs query.
+        top: see thgs query.
+        threshold: see thgs query.
+        min_gaussians: see thgs query.
+        scene: the scene the field was built on, if not where the field says.
+        text_model: the text model's local folder, instead of the one the field records (or,
+            for a field that records none, the Hugging Face cache).
+        verbose: log what is loaded.
+    """
+    from thgs.workflows import CatalogRequest, catalog_field_file, query_config
+
+    setup_logging(verbose)
+    check_output_folder(out)
+    request = CatalogRequest(
+        field=field,
+        vocabulary=vocabulary,
+        out=out,
+        query=query_config(mode, level, top, threshold, min_gaussians),
+        scene=scene,
+        text_model=text_model,
+    )
+    outcome = catalog_field_file(request)
+    result = outcome.catalog
+    table = Table(
+        title=f"thgs catalog {field} ({result.mode}): {len(result.entries)} phrases",
+        title_justify="left",
+    )
+    for column in ("label", "phrase", "confidence", "Gaussians (kept)", "found"):
+        table.add_column(column)
+    for entry in result.entries:
+        confidence = entry.selection.confidence
+        table.add_row(
+            str(entry.index),
+            entry.phrase,
+            "" if confidence is None else f"{confidence:.2f}",
+            f"{int(entry.selection.gaussians.sum()):,} ({entry.kept:,})",
+            "yes" if entry.found else "no",
+        )
+    stdout.print(table)
+    found = sum(entry.found for entry in result.entries)
+    unlabelled = int((result.labels < 0).sum())
+    stdout.print(
+        f"{found} of {len(result.entries)} phrases found; {unlabelled:,} of "
+        f"{len(result.labels):,} Gaussians carry none; wrote {len(outcome.files)} files to {out}/"
+    )
