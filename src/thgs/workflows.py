@@ -8,8 +8,8 @@ are written the same way whoever asks:
   model recorded in its provenance (:class:`BuildRequest` → :class:`BuiltField`);
 - :func:`evaluate_field_file` — a field against a benchmark's ground truth → the JSON report and
   its markdown table, written together (:class:`EvalRequest` → :class:`EvalOutcome`);
-- :func:`export_field_file` — selections as PLYs, the scene coloured by region, labels
-  (:class:`ExportRequest` → :class:`ExportOutcome`), the whole set or none of it;
+- :func:`export_field_file` — selections as PLYs, the scene coloured by region, labels, the
+  scene graph (:class:`ExportRequest` → :class:`ExportOutcome`), the whole set or none of it;
 - :func:`catalog_field_file` — a whole vocabulary answered in one pass: one label per Gaussian,
   one PLY per phrase found, the phrase table (:class:`CatalogRequest` → :class:`CatalogOutcome`,
   :mod:`thgs.catalog`);
@@ -43,6 +43,7 @@ from thgs.query import QueryConfig, Selection
 if TYPE_CHECKING:
     from thgs.catalog import Catalog
     from thgs.eval.dataset import EvalReport, GroundTruth
+    from thgs.scene_graph import SceneGraph
 
 __all__ = [
     "BuildRequest",
@@ -386,28 +387,34 @@ def query_config(
 
 @dataclass(frozen=True)
 class ExportRequest:
-    """What to export from a field into a folder.
+    """What to export from a field.
 
     Attributes:
         field: the field file.
-        out: the folder to write into (created if missing).
+        out: the folder for the query PLYs, the region-coloured PLY and the labels (created if
+            missing); None when only the graph is asked for.
         queries: texts whose selections to write, one ``<query>.ply`` each plus
             ``selections.json``.
         query: how those queries select (:func:`query_config`).
         color_level: write ``regions-<level name>.ply``, the whole scene coloured by region at
             this level (0 superpoints … 3 objects); None: not.
         labels: write ``labels.npy`` (int32 [N, 4], levels 0–3) and ``labels.json``.
+        graph: write the scene graph to this JSON file (:mod:`thgs.scene_graph`); None: not.
+        vocabulary: a phrase file (:func:`thgs.catalog.read_vocabulary`) to name the graph's
+            regions with; None: the graph has no names.
         seed: of the region colours.
         scene: the scene the field was built on, if not where the field records.
         text_model: the text model's folder, instead of the one the field records.
     """
 
     field: Path
-    out: Path
+    out: Path | None = None
     queries: tuple[str, ...] = ()
     query: QueryConfig = QueryConfig()
     color_level: int | None = None
     labels: bool = False
+    graph: Path | None = None
+    vocabulary: Path | None = None
     seed: int = 0
     scene: Path | None = None
     text_model: Path | None = None
@@ -420,44 +427,69 @@ class ExportOutcome:
     Attributes:
         field: the field exported from.
         selections: each query's selection, in the order asked.
-        files: every file written, in order.
+        files: every file written, in order (the graph last).
+        graph: the scene graph written, if asked for.
     """
 
     field: SemanticField
     selections: tuple[Selection, ...]
     files: tuple[Path, ...]
+    graph: SceneGraph | None = None
+
+
+def _check_export(request: ExportRequest) -> tuple[str, ...]:
+    """The vocabulary's phrases (none without one), after checking what ``request`` asks."""
+    from thgs.catalog import read_vocabulary
+
+    to_folder = bool(request.queries) or request.color_level is not None or request.labels
+    if not to_folder and request.graph is None:
+        raise InputError(
+            "thgs export", "nothing to export: pass --query, --color-level, --labels or --graph"
+        )
+    if to_folder and request.out is None:
+        raise InputError(
+            "--out", "--query, --color-level and --labels write into a folder: name it"
+        )
+    if request.color_level is not None and request.color_level not in (0, 1, 2, 3):
+        raise InputError("--color-level", f"must be 0, 1, 2 or 3, got {request.color_level}")
+    if request.graph is not None and request.graph.is_dir():
+        raise InputError(request.graph, "is a folder; name the graph's JSON file, e.g. graph.json")
+    if request.vocabulary is not None and request.graph is None:
+        raise InputError("--vocabulary", "names the graph's regions: pass --graph too")
+    return () if request.vocabulary is None else read_vocabulary(request.vocabulary)
 
 
 def export_field_file(request: ExportRequest) -> ExportOutcome:
-    """Write what ``request`` asks for into ``request.out``: all of it, or (on any failure or
-    interruption) none of it, and the folder removed again if it was made here and is empty.
+    """Write what ``request`` asks for: all of it, or (on any failure or interruption) none of
+    it, and the output folder removed again if it was made here and is empty.
 
     Raises:
-        InputError: nothing asked for, a level out of range, the field or its scene cannot be
-            loaded, or a file that cannot be written (named).
+        InputError: nothing asked for, folder outputs without a folder, a level out of range, a
+            graph path that is a folder, a bad vocabulary, the field or its scene cannot be
+            loaded, or a file that cannot be written (named) — the checks before any loading.
     """
     from thgs.export import write_labels, write_region_ply
     from thgs.field_scene import field_text_encoder, open_field_scene
     from thgs.hierarchy.levels import LEVEL_NAMES
     from thgs.query import FieldQuery
     from thgs.results import write_query_selections
+    from thgs.scene_graph import scene_graph, write_scene_graph
 
-    if not request.queries and request.color_level is None and not request.labels:
-        raise InputError(
-            "thgs export", "nothing to export: pass --query, --color-level or --labels"
-        )
-    if request.color_level is not None and request.color_level not in (0, 1, 2, 3):
-        raise InputError("--color-level", f"must be 0, 1, 2 or 3, got {request.color_level}")
+    phrases = _check_export(request)
     semantic, loaded = open_field_scene(request.field, request.scene)
     out = request.out
-    created = not out.exists()
+    created = out is not None and not out.exists()
     written: list[Path] = []
     selections: tuple[Selection, ...] = ()
+    graph = None
+    engine = None
+    if request.queries or phrases:
+        encoder = field_text_encoder(semantic, request.field, request.text_model)
+        engine = FieldQuery(semantic, encoder, request.query, source=str(request.field))
     regions = [f"regions-{name}" for name in LEVEL_NAMES]  # never a query's name
     try:
         if request.queries:
-            encoder = field_text_encoder(semantic, request.field, request.text_model)
-            engine = FieldQuery(semantic, encoder, request.query, source=str(request.field))
+            assert out is not None and engine is not None
             selections, paths = write_query_selections(
                 out,
                 engine,
@@ -468,22 +500,35 @@ def export_field_file(request: ExportRequest) -> ExportOutcome:
             )
             written += paths
         if request.color_level is not None:
+            assert out is not None
             path = out / f"{regions[request.color_level]}.ply"
             level = request.color_level
             write_region_ply(path, loaded.gaussians, semantic, level, seed=request.seed)
             written.append(path)
         if request.labels:
+            assert out is not None
             for path in (out / "labels.npy", out / "labels.json"):
                 write_labels(path, semantic)
                 written.append(path)
+        if request.graph is not None:
+            graph = scene_graph(
+                semantic,
+                loaded.gaussians,
+                engine=engine,
+                vocabulary=phrases,
+                field_name=str(request.field),
+            )
+            write_scene_graph(request.graph, graph)
+            written.append(request.graph)
     except BaseException:
         for path in written:  # the whole set or none of it
             path.unlink(missing_ok=True)
         if created:
+            assert out is not None
             with contextlib.suppress(OSError):  # only if nothing else was put there
                 out.rmdir()
         raise
-    return ExportOutcome(semantic, selections, tuple(written))
+    return ExportOutcome(semantic, selections, tuple(written), graph)
 
 
 # --- catalog --------------------------------------------------------------------------------------

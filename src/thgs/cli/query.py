@@ -10,7 +10,7 @@ from rich.table import Table
 
 from thgs.choices import Device, SelectionMode
 from thgs.cli._console import setup_logging, stdout
-from thgs.cli._outputs import check_output_folder
+from thgs.cli._outputs import check_output_file, check_output_folder
 from thgs.errors import InputError, ThgsError
 
 __all__ = ["catalog", "export", "pick", "query"]
@@ -219,7 +219,7 @@ def export(
     field: Path,
     /,
     *,
-    out: Annotated[Path, tyro.conf.arg(aliases=("-o",))],
+    out: Annotated[Path | None, tyro.conf.arg(aliases=("-o",))] = None,
     query: tuple[str, ...] = (),
     mode: SelectionMode | None = None,
     level: int | None = None,
@@ -228,16 +228,19 @@ def export(
     min_gaussians: int | None = None,
     color_level: int | None = None,
     labels: bool = False,
+    graph: Path | None = None,
+    vocabulary: Path | None = None,
     seed: int = 0,
     scene: Path | None = None,
     text_model: Path | None = None,
     verbose: bool = False,
 ) -> None:
-    """Take results elsewhere: selections as PLYs, the scene coloured by region, labels.
+    """Take results elsewhere: selections as PLYs, the scene coloured by region, labels, the
+    scene graph.
 
     Args:
         field: the field file (thgs build).
-        out: folder to write into.
+        out: folder to write the PLYs and labels into (not needed for --graph alone).
         query: texts whose selections to write, one <query>.ply each (the input's PLY layout)
             plus selections.json; the selection settings are thgs query's.
         mode: see thgs query.
@@ -248,6 +251,10 @@ def export(
         color_level: write regions-<level>.ply, the whole scene coloured by region at this level
             (0 superpoints … 3 objects).
         labels: write labels.npy (int32 [N, 4], levels 0–3) and labels.json.
+        graph: write the scene graph to this JSON file: every region of every level with its
+            parent, children, size, centroid and boxes, its best names from --vocabulary, and
+            which regions of a level touch (schema: docs/query.md).
+        vocabulary: a text file of phrases (one per line) to name the graph's regions with.
         seed: of the region colours.
         scene: the scene the field was built on, if not where the field says.
         text_model: the text model's local folder, instead of the one the field records (or,
@@ -258,7 +265,10 @@ def export(
     from thgs.workflows import ExportRequest, export_field_file, query_config
 
     setup_logging(verbose)
-    check_output_folder(out)
+    if out is not None:
+        check_output_folder(out)
+    if graph is not None:
+        check_output_file(graph, "--graph")
     request = ExportRequest(
         field=field,
         out=out,
@@ -266,6 +276,8 @@ def export(
         query=query_config(mode, level, top, threshold, min_gaussians) if query else QueryConfig(),
         color_level=color_level,
         labels=labels,
+        graph=graph,
+        vocabulary=vocabulary,
         seed=seed,
         scene=scene,
         text_model=text_model,
@@ -274,8 +286,17 @@ def export(
     if query:
         title = f"thgs export {field} ({request.query.mode})"
         stdout.print(_selection_table(title, outcome.field, outcome.selections))
-    files = outcome.files
-    stdout.print(f"wrote {len(files)} files to {out}/: " + ", ".join(p.name for p in files))
+    if outcome.graph is not None:
+        levels = [sum(node.level == k for node in outcome.graph.nodes) for k in range(4)]
+        stdout.print(
+            f"scene graph: {' / '.join(map(str, levels))} regions at levels 0–3, "
+            f"{len(outcome.graph.edges)} touching pairs"
+        )
+    files = [p for p in outcome.files if p != graph]
+    if files:
+        stdout.print(f"wrote {len(files)} files to {out}/: " + ", ".join(p.name for p in files))
+    if graph is not None:
+        stdout.print(f"wrote {graph}")
 
 
 def catalog(
