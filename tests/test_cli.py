@@ -175,6 +175,18 @@ def test_demo_builds_queries_and_reports(tmp_path, capsys):
     assert "matched mIoU" in stdout and "query-*.png" in stdout
     mug = report["queries"][0]
     assert mug["confidence"] > 0.9 and f"mug ({mug['confidence']:.2f})" in stdout
+    # each query is drawn in the view that shows most of its selection
+    from thgs.field_scene import field_text_encoder, open_field_scene
+    from thgs.query import FieldQuery
+    from thgs.views import visible_pixels
+
+    field, scene = open_field_scene(out / "field.thgs")
+    engine = FieldQuery(field, field_text_encoder(field, out / "field.thgs"))
+    for query in report["queries"]:
+        counts = visible_pixels(
+            scene.gaussians, scene.cameras, engine.select([query["text"]])[0].gaussians
+        )
+        assert query["view"] == scene.cameras.stems[int(np.argmax(counts))]
     # a second run reuses the cached scene
     code, _, err = run(argv, capsys)
     assert code == 0, err

@@ -7,7 +7,8 @@ selection (and the paper's, for comparison) and writes into ``out``::
     field.thgs              the semantic field (thgs.field.load_field)
     report.json, report.md  per-level agreement with ground truth, timings, query results
     levels.png              one view coloured by region at levels 0–3, beside the input image
-    query-<text>.png        one view with each query's selection (rendered opacity > 0.5) tinted
+    query-<text>.png        each query's selection (rendered opacity > 0.5) tinted, in the view
+                            that shows most of it (:func:`thgs.views.best_views`)
 
 The synthetic features are all-MiniLM-L6-v2 text embeddings standing in for CLIP
 (docs/synthetic.md), so the queries run offline.
@@ -39,7 +40,7 @@ from thgs.scene import Scene, load_scene
 from thgs.synthetic import evaluation_views
 from thgs.synthetic.cache import default_cache, synthetic_dataset
 from thgs.text import MINILM_SPACE, load_text_encoder
-from thgs.views import selection_masks
+from thgs.views import best_views, selection_masks
 from thgs.workflows import BuildRequest, build_field_file
 
 __all__ = [
@@ -65,6 +66,8 @@ class QueryResult:
         truth: number of Gaussians whose ground-truth name (at any level) is the query.
         iou: 3-D IoU of the selection with those Gaussians (NaN when there are none).
         image: the picture of the selection.
+        view: the view it is drawn in (its stem): the one that shows most of the selection,
+            or the levels picture's view when nothing was selected.
         level: the field level of the query's name (3 objects, 2 parts, 1 sub-parts; 3 when the
             name is not in the scene).
         best_iou: 3-D IoU of the single most relevant region of ``level`` (the ``level``
@@ -81,6 +84,7 @@ class QueryResult:
     truth: int
     iou: float
     image: Path
+    view: str
     level: int
     best_iou: float
     paper_iou: float
@@ -146,6 +150,7 @@ class DemoReport:
                     "truth": q.truth,
                     "iou": None if np.isnan(q.iou) else q.iou,
                     "image": q.image.name,
+                    "view": q.view,
                     "level": q.level,
                     "best_iou": None if np.isnan(q.best_iou) else q.best_iou,
                     "paper_iou": None if np.isnan(q.paper_iou) else q.paper_iou,
@@ -294,11 +299,21 @@ def run_demo(
 
     texts = tuple(queries) if queries is not None else demo_queries(hierarchy)
     names = {level: hierarchy.level_names(level) for level in (1, 2, 3)}
-    camera = scene.cameras.select([view])
     results = []
     fq = FieldQuery(field, encoder)
-    for selection in fq.select(list(texts)):
+    selections = fq.select(list(texts))
+    shown = best_views(
+        scene.gaussians, scene.cameras, np.stack([s.gaussians for s in selections], 1)
+    )
+    pictures = {view: rgb}
+    for selection, best_view in zip(selections, shown.tolist()):
         text = selection.text
+        drawn = view if best_view < 0 else best_view
+        if drawn not in pictures:
+            pictures[drawn] = _render(
+                scene, drawn, scene.gaussians.dc_colors().detach().cpu().numpy()
+            )[0]
+        camera = scene.cameras.select([drawn])
         wanted = np.zeros(len(field), dtype=bool)
         for level_names in names.values():
             wanted |= level_names == text
@@ -310,9 +325,10 @@ def run_demo(
             _iou(chosen.gaussians, wanted) for chosen in (selection, best, paper)
         )
         mask = selection_masks(scene.gaussians, camera, selection.gaussians)
-        tinted = np.where(mask[..., None], 0.45 * rgb + 0.55 * _HIGHLIGHT, 0.55 * rgb)
+        photo = pictures[drawn]
+        tinted = np.where(mask[..., None], 0.45 * photo + 0.55 * _HIGHLIGHT, 0.55 * photo)
         image = out / f"query-{slug(text)}.png"
-        write_map_png(image, np.concatenate([rgb, tinted], axis=1))
+        write_map_png(image, np.concatenate([photo, tinted], axis=1))
         files.append(image)
         results.append(
             QueryResult(
@@ -322,6 +338,7 @@ def run_demo(
                 truth=int(wanted.sum()),
                 iou=iou,
                 image=image,
+                view=camera.stems[0],
                 level=level,
                 best_iou=best_iou,
                 paper_iou=paper_iou,

@@ -32,7 +32,7 @@ from thgs.hierarchy.levels import LEVEL_NAMES
 from thgs.query import FieldQuery, QueryConfig, Selection
 from thgs.render import RasterConfig
 from thgs.scene import Cameras, Gaussians
-from thgs.views import Pick, relevancy_map, selection_masks
+from thgs.views import Pick, best_views, relevancy_map, selection_masks
 
 __all__ = [
     "PickFiles",
@@ -96,6 +96,7 @@ def write_query_results(
     cameras: Cameras | None = None,
     mask_threshold: float = 0.5,
     relevancy: bool = False,
+    best_view: bool = False,
     raster: RasterConfig = RasterConfig(),
 ) -> QueryFiles:
     """Answer ``texts`` with ``engine`` and write the answers to ``out``.
@@ -111,6 +112,9 @@ def write_query_results(
         cameras: the views to draw masks in (none: only ``results.json``).
         mask_threshold: rendered opacity of the selection above which a pixel is in the mask.
         relevancy: also draw per-pixel relevancy maps (0–255) for every searched level.
+        best_view: draw each query only in the one of ``cameras`` that shows most of its
+            selection (:func:`thgs.views.best_views`; none when no view shows it), recorded as
+            its ``"view"`` in ``results.json``.
         raster: the rasterization settings (the ones the field was lifted with:
             :func:`thgs.pipeline.lifted_raster`).
 
@@ -128,6 +132,7 @@ def write_query_results(
     selections = engine.select(list(texts))
     names = unique_names(texts)
     written: dict[str, list[Path]] = {name: [] for name in names}  # relative to ``out``
+    shown: list[str | None] = [None] * len(names)
     with staging_folder(out) as stage:
         if cameras is not None and gaussians is not None and len(cameras):
             selected = np.stack([s.gaussians for s in selections], axis=1)
@@ -135,21 +140,31 @@ def write_query_results(
                 k: np.stack([engine.gaussian_relevancy(text, k) for text in texts], axis=1)
                 for k in (config.searched_levels if relevancy else ())
             }
-            for index in range(len(cameras)):
+            drawn = {index: list(range(len(names))) for index in range(len(cameras))}
+            if best_view:
+                views = best_views(
+                    gaussians, cameras, selected, threshold=mask_threshold, config=raster
+                )
+                drawn = {
+                    index: [q for q, view in enumerate(views.tolist()) if view == index]
+                    for index in sorted(set(views.tolist()) - {-1})
+                }
+                shown = [None if view < 0 else cameras.stems[view] for view in views.tolist()]
+            for index, queries in drawn.items():
                 camera = cameras.select([index])
                 stem = camera.stems[0]
                 masks = selection_masks(
-                    gaussians, camera, selected, threshold=mask_threshold, config=raster
+                    gaussians, camera, selected[:, queries], threshold=mask_threshold, config=raster
                 )
-                for q, name in enumerate(names):
-                    write_mask_png(stage / name / f"{stem}.png", masks[..., q])
-                    written[name].append(Path(name) / f"{stem}.png")
+                for column, q in enumerate(queries):
+                    write_mask_png(stage / names[q] / f"{stem}.png", masks[..., column])
+                    written[names[q]].append(Path(names[q]) / f"{stem}.png")
                 for k, per_gaussian in relevancies.items():
-                    maps = relevancy_map(gaussians, camera, per_gaussian, config=raster)
-                    for q, name in enumerate(names):
-                        relative = Path(name) / f"{stem}-relevancy-{LEVEL_NAMES[k]}.png"
-                        write_map_png(stage / relative, maps[..., q])
-                        written[name].append(relative)
+                    maps = relevancy_map(gaussians, camera, per_gaussian[:, queries], config=raster)
+                    for column, q in enumerate(queries):
+                        relative = Path(names[q]) / f"{stem}-relevancy-{LEVEL_NAMES[k]}.png"
+                        write_map_png(stage / relative, maps[..., column])
+                        written[names[q]].append(relative)
         files = {name: [out / relative for relative in paths] for name, paths in written.items()}
         write_json(
             stage / "results.json",
@@ -158,8 +173,12 @@ def write_query_results(
                 "space": engine.regions.space,
                 "config": _settings(engine, config),
                 "queries": [
-                    {**selection.to_json(engine.regions), "files": [str(p) for p in files[name]]}
-                    for selection, name in zip(selections, names)
+                    {
+                        **selection.to_json(engine.regions),
+                        **({"view": view} if best_view else {}),
+                        "files": [str(p) for p in files[name]],
+                    }
+                    for selection, name, view in zip(selections, names, shown)
                 ],
             },
         )

@@ -28,7 +28,15 @@ from thgs.pick_index import PickIndex, check_pixel
 from thgs.render import RasterConfig, render
 from thgs.scene import Cameras, Gaussians
 
-__all__ = ["Pick", "pick", "relevancy_map", "selection_masks", "selection_opacity"]
+__all__ = [
+    "Pick",
+    "best_views",
+    "pick",
+    "relevancy_map",
+    "selection_masks",
+    "selection_opacity",
+    "visible_pixels",
+]
 
 
 def _columns(values: np.ndarray, n: int, name: str) -> tuple[np.ndarray, bool]:
@@ -86,6 +94,56 @@ def selection_masks(
     if not 0.0 <= threshold < 1.0:
         raise InputError("threshold", f"must be in [0, 1), got {threshold}")
     return selection_opacity(gaussians, camera, selected, config=config) > threshold
+
+
+def visible_pixels(
+    gaussians: Gaussians,
+    cameras: Cameras,
+    selected: np.ndarray,
+    *,
+    threshold: float = 0.5,
+    config: RasterConfig = RasterConfig(),
+) -> np.ndarray:
+    """How many pixels of each view each selection covers, what is in front of it included
+    (:func:`selection_masks`, one render per view for every selection at once).
+
+    Args:
+        cameras: the V views.
+        selected: [N] or [N, Q] bool.
+
+    Returns:
+        [V, Q] int64 pixel counts ([V] for one selection).
+    """
+    columns, single = _columns(selected, len(gaussians), "selected")
+    if len(cameras) == 0:
+        raise InputError("cameras", "no view to look in")
+    counts = np.zeros((len(cameras), columns.shape[1]), dtype=np.int64)
+    for view in range(len(cameras)):
+        masks = selection_masks(
+            gaussians, cameras.select([view]), columns, threshold=threshold, config=config
+        )
+        counts[view] = masks.reshape(-1, columns.shape[1]).sum(axis=0)
+    return counts[:, 0] if single else counts
+
+
+def best_views(
+    gaussians: Gaussians,
+    cameras: Cameras,
+    selected: np.ndarray,
+    *,
+    threshold: float = 0.5,
+    config: RasterConfig = RasterConfig(),
+) -> np.ndarray:
+    """For each selection, the view that shows most of it (:func:`visible_pixels`): the one to
+    draw it in. Ties go to the first such view; −1 when no view shows any of it (an empty
+    selection, or one hidden everywhere).
+
+    Returns:
+        [Q] int64 view indices into ``cameras`` (a 0-d array for one [N] selection).
+    """
+    counts = visible_pixels(gaussians, cameras, selected, threshold=threshold, config=config)
+    best = np.argmax(counts, axis=0)
+    return np.where(counts.max(axis=0) > 0, best, -1)
 
 
 def relevancy_map(

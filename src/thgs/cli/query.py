@@ -86,7 +86,8 @@ def query(
             scene, docs/query.md).
         min_gaussians: never select regions with fewer Gaussians (default: the field's
             small-region size, 20 for the LERF preset; 0 to allow every region).
-        views: view names (image stems) to draw masks in, or "all".
+        views: view names (image stems) to draw masks in, "all", or "best": each query in
+            the one view that shows most of its selection (every view is rendered to find it).
         out: folder for results.json and the masks.
         relevancy: also write per-pixel relevancy maps (<view>-relevancy-<level>.png, 0–255).
         mask_threshold: rendered opacity above which a pixel is in the mask.
@@ -123,8 +124,9 @@ def query(
         stdout.print(_selection_table(f"thgs query {field} ({config.mode})", semantic, selections))
         return
     cameras = None
+    best = views == ("best",)
     if loaded is not None:
-        wanted = loaded.cameras.stems if views == ("all",) else views
+        wanted = loaded.cameras.stems if views in (("all",), ("best",)) else views
         where = loaded.cameras_path or loaded.ply_path
         cameras = loaded.cameras.select([find_view(loaded.cameras, name, where) for name in wanted])
     written = write_query_results(
@@ -136,6 +138,7 @@ def query(
         cameras=cameras,
         mask_threshold=mask_threshold,
         relevancy=relevancy,
+        best_view=best,
         raster=lifted_raster(semantic, str(field)),
     )
     stdout.print(
@@ -143,6 +146,8 @@ def query(
     )
     count = 0 if cameras is None else len(cameras)
     masks = f" and masks for {count} view{'s' if count != 1 else ''}" if count else ""
+    if best:
+        masks = " and each query's mask in the view that shows most of it"
     stdout.print(f"wrote {written.results}{masks}")
 
 
