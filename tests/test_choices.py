@@ -8,7 +8,7 @@ import typing
 import pytest
 
 import thgs.cli
-from thgs.choices import DEVICES, FIELD_PRESETS, SCENE_PRESETS
+from thgs.choices import DEVICES, FIELD_PRESETS, SCENE_PRESETS, SELECTION_MODES
 from thgs.device import resolve_device
 from thgs.errors import InputError
 from thgs.pipeline import PRESETS
@@ -27,6 +27,14 @@ def test_the_registries_hold_the_offered_names():
             assert "unknown" not in str(error)
     with pytest.raises(InputError, match="unknown"):
         resolve_device("tpu")
+    from thgs.query import QueryConfig
+    from thgs.viewer.state import QUERY_MODES
+
+    assert tuple(QUERY_MODES) == SELECTION_MODES
+    for mode in SELECTION_MODES:
+        assert QueryConfig(mode=mode).check().mode == mode
+    with pytest.raises(InputError, match="must be auto, paper, level or threshold"):
+        QueryConfig(mode="best").check()
 
 
 def offered(command: str, option: str) -> tuple:
@@ -44,6 +52,7 @@ def offered(command: str, option: str) -> tuple:
         ("demo", "preset", SCENE_PRESETS),
         *[(c, "device", DEVICES) for c in ("build", "query", "pick", "eval", "view", "suite")],
         ("bench", "device", DEVICES),
+        *[(c, "mode", SELECTION_MODES) for c in ("query", "export", "catalog", "view")],
     ],
 )
 def test_every_command_offers_exactly_those_names(command, option, names):

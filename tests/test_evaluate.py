@@ -150,7 +150,7 @@ def test_lerf_perfect_selection_scores_one_and_reference_pools_both(scene):
     assert result.metrics["miou"] == pytest.approx(np.mean(list(expected_iou.values())))
     # the automatic selection takes only the patch named like the query (two regions are too
     # few for a scene null: the relevancy decides whether anything is relevant)
-    engine = FieldQuery(_regions(), _TableEncoder(), QueryConfig(threshold=0.5))
+    engine = FieldQuery(_regions(), _TableEncoder(), QueryConfig(min_relevancy=0.5))
     result = evaluate_lerf(engine, gaussians, cameras, frames)
     assert result.metrics == {"miou": 1.0, "accuracy": 1.0}
     assert result.settings["selection"] == "auto"

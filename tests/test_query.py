@@ -297,7 +297,11 @@ def test_a_field_without_features_says_why_nothing_is_selected(mode):
     # every seen region too small to be selected: that is said instead
     small = FieldQuery(_field(), _encoder(), QueryConfig(mode=mode, min_gaussians=5))
     assert "lower --min-gaussians" in small.select(["red"])[0].reason
-    plain = QueryConfig(mode=mode, threshold=0.5 if mode in ("auto", "threshold") else None)
+    plain = QueryConfig(
+        mode=mode,
+        threshold=0.5 if mode == "threshold" else None,
+        min_relevancy=0.5 if mode == "auto" else None,
+    )
     assert FieldQuery(_field(), _encoder(), plain).select(["red"])[0].reason is None
 
 
@@ -333,7 +337,7 @@ def test_the_flat_auto_rule_takes_every_region_named_like_the_query_or_abstains(
     field, encoder = _field(), _encoder()
     assert QueryConfig().mode == "auto" and QueryConfig().searched_levels == (1, 2, 3)
     # the rule before the hierarchy: raw cosines, every region past the cut, relevancy 0.8
-    flat = QueryConfig(hierarchical=False, centred=False, threshold=0.8)
+    flat = QueryConfig(hierarchical=False, centred=False, min_relevancy=0.8)
     fq = FieldQuery(field, encoder, flat)
     # cosines with "red": levels 1 and 2 [1, 0.981, 0, unseen], level 3 [0.995, 0]; the median
     # of the 8 seen regions is 0.981, so the cut is 1 − 0.15 · (1 − 0.981) ≈ 0.997
@@ -356,7 +360,7 @@ def test_the_flat_auto_rule_takes_every_region_named_like_the_query_or_abstains(
     green = fq.select(["green"])[0]
     assert [r[:2] for r in green.regions] == [(3, 1), (1, 2), (2, 2)]
     # nothing reaches the relevancy the best region needs: abstain, saying why
-    strict = fq.with_config(threshold=0.9)
+    strict = fq.with_config(min_relevancy=0.9)
     nothing = fq.select(["nothing"], strict)[0]
     assert nothing.empty and not nothing.gaussians.any()
     assert nothing.reason.startswith("nothing relevant to 'nothing': the best region scores 0.500")
@@ -432,7 +436,7 @@ def test_a_nested_field_is_searched_by_the_hierarchy():
     # 8 seen regions is 0.981, so with extent 0.9 the cut is 0.983: the flat rule takes part 1
     # and object 0 (Gaussians 0-3); the hierarchical one sees part 1 rise 0.0045 above object 0
     # (margin 0.05 · 0.019) and takes part 1 alone (Gaussians 2, 3)
-    raw = QueryConfig(centred=False, threshold=0.5, extent=0.9)
+    raw = QueryConfig(centred=False, min_relevancy=0.5, extent=0.9)
     hierarchical = FieldQuery(field, encoder, raw).select(["pinkish"])[0]
     flat = FieldQuery(field, encoder, replace(raw, hierarchical=False)).select(["pinkish"])[0]
     np.testing.assert_array_equal(flat.gaussians, [1, 1, 1, 1, 0, 0, 0, 0])
@@ -487,8 +491,8 @@ def test_auto_abstains_below_the_scene_null():
         f"nothing relevant to 'red': the best region is {score:.2f} standard deviations above "
         f"what ordinary names reach in this scene, below the {score + 0.01:.2f} needed"
     )
-    # a threshold given: the relevancy decides instead
-    relevant = fq.select(["red"], fq.with_config(min_score=score + 0.01, threshold=0.5))[0]
+    # a minimum relevancy given: the relevancy decides instead
+    relevant = fq.select(["red"], fq.with_config(min_score=score + 0.01, min_relevancy=0.5))[0]
     assert not relevant.empty
 
 
@@ -577,3 +581,29 @@ def test_confidence_matches_a_brute_force_computation():
     paper = select_paper(field, _unit(1, 0, 0), canonical)
     assert paper.confidence is None and "confidence" not in paper.to_json(field)
     assert all("confidence" not in r for r in paper.to_json(field)["regions"])
+
+
+@pytest.mark.parametrize(
+    ("config", "message"),
+    [
+        (
+            QueryConfig(threshold=0.5),
+            "QueryConfig.threshold: only the threshold mode reads it, not the auto",
+        ),
+        (
+            QueryConfig(mode="level", threshold=0.5),
+            "QueryConfig.threshold: only the threshold mode reads it, not the level",
+        ),
+        (
+            QueryConfig(mode="threshold", min_relevancy=0.5),
+            "QueryConfig.min_relevancy: only the auto mode",
+        ),
+        (QueryConfig(min_relevancy=1.5), "QueryConfig.min_relevancy: must be in [0, 1], got 1.5"),
+    ],
+)
+def test_each_relevancy_cut_belongs_to_one_mode(config, message):
+    """The threshold mode's cut and the auto mode's minimum relevancy are two settings: one
+    given to the other mode is refused, not ignored."""
+    with pytest.raises(InputError) as caught:
+        config.check()
+    assert str(caught.value).startswith(message)

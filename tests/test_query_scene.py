@@ -122,7 +122,7 @@ def test_nonsense_selects_nothing_in_threshold_mode(named, level):
     # of the scene's null): by the scene's own measure it is the bear, and only a relevancy
     # threshold says no
     assert [r[:2] for r in fq.select(["a giraffe"])[0].regions] == [(3, 1)]
-    assert fq.select(["a giraffe"], fq.with_config(threshold=0.8))[0].empty
+    assert fq.select(["a giraffe"], fq.with_config(min_relevancy=0.8))[0].empty
     for selection in fq.select([text for text in NONSENSE if text != "a giraffe"]):
         assert selection.empty and "nothing relevant to" in selection.reason, selection.regions
 

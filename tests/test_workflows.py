@@ -123,6 +123,7 @@ def test_nothing_to_export_and_a_bad_level_are_named(small_field, tmp_path):
         ({"mode": "threshold", "threshold": 0.6}, QueryConfig(mode="threshold", threshold=0.6)),
         ({"mode": "paper"}, QueryConfig(mode="paper")),
         ({"mode": "level", "top": 3}, QueryConfig(mode="level", level=3, top=3)),
+        ({"threshold": 0.7}, QueryConfig(mode="auto", min_relevancy=0.7)),
     ],
 )
 def test_query_options_become_a_query_config(options, expected):
@@ -138,6 +139,9 @@ def test_query_options_become_a_query_config(options, expected):
         ({"top": 0}, "--top: must be ≥ 1, got 0"),
         ({"mode": "threshold", "threshold": 2.0}, "--threshold: must be in [0, 1], got 2.0"),
         ({"min_gaussians": -1}, "--min-gaussians: must be ≥ 0, got -1"),
+        ({"mode": "paper", "threshold": 0.5}, "--threshold: the paper mode uses no threshold"),
+        ({"level": 2, "threshold": 0.5}, "--threshold: the level mode uses no threshold"),
+        ({"threshold": 1.5}, "--threshold: must be in [0, 1], got 1.5"),
     ],
 )
 def test_contradicting_query_options_are_named(options, message):

@@ -78,7 +78,10 @@ def _settings(engine: FieldQuery, config: QueryConfig) -> dict[str, Any]:
     return {
         "mode": config.mode,
         "searched_levels": list(config.searched_levels),
-        "threshold": config.threshold if config.threshold is not None else engine.threshold,
+        "threshold": next(
+            (v for v in (config.min_relevancy, config.threshold) if v is not None),
+            engine.threshold,
+        ),
         "top": config.top,
         "min_gaussians": (
             engine.min_gaussians if config.min_gaussians is None else config.min_gaussians

@@ -354,7 +354,9 @@ def query_config(
     """The selection the query commands' options ask for, checked together.
 
     ``mode`` None means ``auto``, or ``level`` when a level is named; naming a level for the
-    auto or paper mode (which choose their levels) is refused.
+    auto or paper mode (which choose their levels) is refused. ``threshold`` is the threshold
+    mode's relevancy cut (:attr:`QueryConfig.threshold`) or the auto mode's minimum relevancy
+    (:attr:`QueryConfig.min_relevancy`); the paper and level modes refuse it.
 
     Raises:
         InputError: naming the option (``--level``, ``--top``, ``--threshold``,
@@ -367,19 +369,23 @@ def query_config(
     if mode in ("auto", "paper") and level is not None:
         searched = "levels 1–3" if mode == "auto" else "levels 2 and 3"
         raise InputError("--level", f"the {mode} mode searches {searched}; use --mode level")
+    if threshold is not None and mode in ("paper", "level"):
+        raise InputError("--threshold", f"the {mode} mode uses no threshold")
     try:
         return QueryConfig(
             mode=mode,
             level=3 if level is None else level,
             top=top,
-            threshold=threshold,
+            threshold=threshold if mode == "threshold" else None,
+            min_relevancy=threshold if mode == "auto" else None,
             min_gaussians=min_gaussians,
         ).check()
     except InputError as error:
         setting = error.source.rpartition(".")[2]
-        if setting not in ("level", "top", "threshold", "min_gaussians"):
+        if setting not in ("level", "top", "threshold", "min_relevancy", "min_gaussians"):
             raise
-        raise InputError("--" + setting.replace("_", "-"), error.problem) from error
+        flag = "threshold" if setting == "min_relevancy" else setting
+        raise InputError("--" + flag.replace("_", "-"), error.problem) from error
 
 
 # --- export ---------------------------------------------------------------------------------------

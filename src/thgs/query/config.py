@@ -46,13 +46,14 @@ class QueryConfig:
         min_score: auto mode: the query is abstained from when its best region's score, the
             cosine's distance above the scene's null in units of the null's spread (the best
             cosines of the generic :data:`thgs.confidence.NULL_PHRASES`, read the same way), is
-            below this. Used when ``threshold`` is None; a scene without a null falls back to
-            the space's relevancy threshold.
+            below this. Used when ``min_relevancy`` is None; a scene without a null falls back
+            to the space's relevancy threshold (:func:`default_threshold`).
         level: level and threshold modes: the level searched (1 sub-parts, 2 parts, 3 objects).
         top: level mode: how many regions (1).
-        threshold: threshold mode: the relevancy a region needs (None:
-            :func:`default_threshold` of the field's space); auto mode: if given, the relevancy
-            the best region needs, or the query is abstained from, instead of ``min_score``.
+        threshold: threshold mode only: the relevancy a region needs (None:
+            :func:`default_threshold` of the field's space).
+        min_relevancy: auto mode only: if given, the relevancy the best region needs, or the
+            query is abstained from, instead of ``min_score``.
         min_gaussians: regions with fewer Gaussians are never selected (0: all may be); None:
             the field's small-region size (``config["merge"]["min_region_gaussians"]``, 20 for
             the LERF preset, 0 if the field does not say). Leftover specks that merging could
@@ -74,6 +75,7 @@ class QueryConfig:
     level: int = 3
     top: int = 1
     threshold: float | None = None
+    min_relevancy: float | None = None
     min_gaussians: int | None = None
     temperature: float = 10.0
 
@@ -93,8 +95,17 @@ class QueryConfig:
         for name in ("per_level", "keep", "top"):
             if getattr(self, name) < 1:
                 raise InputError(f"QueryConfig.{name}", f"must be ≥ 1, got {getattr(self, name)}")
-        if self.threshold is not None and not 0.0 <= self.threshold <= 1.0:
-            raise InputError("QueryConfig.threshold", f"must be in [0, 1], got {self.threshold}")
+        for name, mode in (("threshold", "threshold"), ("min_relevancy", "auto")):
+            value = getattr(self, name)
+            if value is None:
+                continue
+            if not 0.0 <= value <= 1.0:
+                raise InputError(f"QueryConfig.{name}", f"must be in [0, 1], got {value}")
+            if self.mode != mode:
+                raise InputError(
+                    f"QueryConfig.{name}",
+                    f"only the {mode} mode reads it, not the {self.mode} mode",
+                )
         if self.min_gaussians is not None and self.min_gaussians < 0:
             raise InputError("QueryConfig.min_gaussians", f"must be ≥ 0, got {self.min_gaussians}")
         if not self.temperature > 0:

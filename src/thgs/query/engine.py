@@ -183,13 +183,14 @@ class FieldQuery:
             cosines = {k: self.centred_similarity(todo, k, smallest) for k in (1, 2, 3)}
             null = self.null_model(smallest)
             presence = self._presence(cosines, smallest, null)
-            cut = config.threshold if config.threshold is not None else self.threshold
+            given = config.min_relevancy if config.mode == "auto" else config.threshold
+            cut = given if given is not None else self.threshold
             if config.mode == "auto":
                 read = (
                     cosines if config.centred else {k: self.similarity(todo, k) for k in (1, 2, 3)}
                 )
                 judge = None
-                if config.threshold is None:
+                if config.min_relevancy is None:
                     judge = self.null_model(smallest, centred=config.centred)
                 parents = None
                 if config.hierarchical and self.regions.levels.nested:

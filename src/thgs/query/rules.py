@@ -110,8 +110,9 @@ def select(
         scores: level → [R_level] relevancies, for every level in ``config.searched_levels``.
         config: the selection mode and its settings.
         allowed: level → [R_level] bool, the regions that may be chosen (default: all).
-        threshold: threshold and auto modes' relevancy, used when ``config.threshold`` is None
-            (auto mode here always abstains by relevancy: the null is :class:`FieldQuery`'s).
+        threshold: the threshold mode's relevancy when ``config.threshold`` is None, and the
+            auto mode's when ``config.min_relevancy`` is (auto mode here always abstains by
+            relevancy: the null is :class:`FieldQuery`'s).
         similarities: auto mode: level → [R_level] cosine of each region's feature with the
             query (required there).
         parents: auto mode: the nesting of levels 1–3 (:func:`select_auto`); None: flat.
@@ -126,7 +127,8 @@ def select(
     for level in config.searched_levels:
         ok = np.ones(scores[level].shape, bool) if allowed is None else allowed[level]
         candidates[level] = np.flatnonzero(ok & (scores[level] > 0))
-    cut = config.threshold if config.threshold is not None else threshold
+    given = config.min_relevancy if config.mode == "auto" else config.threshold
+    cut = given if given is not None else threshold
     if config.mode == "auto":
         if similarities is None:
             raise InputError("select", "auto mode needs the regions' cosine similarities")

@@ -31,6 +31,7 @@ from typing import Literal
 import numpy as np
 import torch
 
+from thgs.choices import SelectionMode
 from thgs.errors import InputError
 from thgs.export import region_colors, slug, write_selection
 from thgs.field import SemanticField
@@ -53,7 +54,7 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
-QueryMode = Literal["auto", "paper", "level", "threshold"]
+QueryMode = SelectionMode
 ColorMode = Literal["scene", "regions", "relevancy"]
 
 QUERY_MODES: dict[str, str] = {
