@@ -188,6 +188,11 @@ def test_the_catalog_files(engine, small_dataset, tmp_path):
             assert "ply" not in row and row["reason"]
     table = (tmp_path / "out" / "catalog.md").read_text()
     assert "| 6 | giraffe | no: nothing relevant" in table
+    # a phrase with a bar stays one cell of the table
+    piped = catalog_field(engine, ("mug | cup",))
+    write_catalog(tmp_path / "piped", piped, gaussians, engine, field_name="f.thgs")
+    row = (tmp_path / "piped" / "catalog.md").read_text().splitlines()[4]
+    assert row.startswith("| 0 | mug \\| cup | ") and row.count(" | ") == 6
 
 
 def test_a_catalog_that_cannot_be_written_leaves_nothing(

@@ -210,8 +210,9 @@ def _table(catalog: Catalog, files: dict[int, str]) -> str:
         selection = entry.selection
         confidence = "–" if selection.confidence is None else f"{selection.confidence:.2f}"
         found = "yes" if entry.found else f"no: {selection.reason or 'nothing selected'}"
+        phrase, found = (text.replace("|", "\\|") for text in (entry.phrase, found))
         lines.append(
-            f"| {entry.index} | {entry.phrase} | {found} | {confidence} | "
+            f"| {entry.index} | {phrase} | {found} | {confidence} | "
             f"{int(selection.gaussians.sum()):,} | {entry.kept:,} | {files.get(entry.index, '–')} |"
         )
     unlabelled = int((catalog.labels < 0).sum())

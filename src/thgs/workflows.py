@@ -1,8 +1,9 @@
-"""One library function per user action: build a field, evaluate it, export from it.
+"""One library function per user action: build a field, evaluate it, export from it, answer a
+vocabulary.
 
-``thgs build``, ``thgs eval`` and ``thgs export``, ``thgs suite``'s stages and the demo call
-these and only format what they return, so each action has one implementation and its files
-are written the same way whoever asks:
+``thgs build``, ``thgs eval``, ``thgs export`` and ``thgs catalog``, ``thgs suite``'s stages and
+the demo call these and only format what they return, so each action has one implementation and
+its files are written the same way whoever asks:
 
 - :func:`build_field_file` — scene + guidance + settings → a field file, with the scene and text
   model recorded in its provenance (:class:`BuildRequest` → :class:`BuiltField`);
@@ -18,7 +19,7 @@ are written the same way whoever asks:
 
 Querying and picking write through :func:`thgs.results.write_query_results` and
 :func:`thgs.results.write_pick_results`; the suite's own stage planning is in
-:mod:`thgs.suite.run`.
+:mod:`thgs.suite.plan`.
 
 Error messages name the command line's options (``--source``, ``--level`` …): these functions
 are what the commands run, and a library caller reads the option as the argument of the same
@@ -37,7 +38,7 @@ from typing import TYPE_CHECKING, Literal
 from thgs.choices import SelectionMode
 from thgs.errors import InputError
 from thgs.field import SemanticField
-from thgs.pipeline import FieldConfig
+from thgs.field_config import FieldConfig
 from thgs.query import QueryConfig, Selection
 
 if TYPE_CHECKING:
