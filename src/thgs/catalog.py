@@ -30,6 +30,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -166,7 +167,7 @@ def catalog_field(
     phrases = list(phrases)
     if not phrases:
         raise InputError("vocabulary", "give at least one phrase")
-    repeated = sorted({p for p in phrases if phrases.count(p) > 1})
+    repeated = sorted(phrase for phrase, count in Counter(phrases).items() if count > 1)
     if repeated:
         raise InputError("vocabulary", f"phrases given twice: {repeated}")
     config = engine.config if config is None else config.check()

@@ -292,7 +292,8 @@ def run_demo(
     truth = hierarchy.labels
     miou = tuple(matched_miou(field.labels[:, k], truth[:, k]) for k in (1, 2, 3))
     view = evaluation_views(len(scene.cameras))[0]
-    rgb, _ = _render(scene, view, scene.gaussians.dc_colors().detach().cpu().numpy())
+    colors = scene.gaussians.dc_colors().detach().cpu().numpy()
+    rgb, _ = _render(scene, view, colors)
     levels_path = out / "levels.png"
     write_map_png(levels_path, _levels_picture(scene, field, view, rgb))
     files.append(levels_path)
@@ -310,9 +311,7 @@ def run_demo(
         text = selection.text
         drawn = view if best_view < 0 else best_view
         if drawn not in pictures:
-            pictures[drawn] = _render(
-                scene, drawn, scene.gaussians.dc_colors().detach().cpu().numpy()
-            )[0]
+            pictures[drawn] = _render(scene, drawn, colors)[0]
         camera = scene.cameras.select([drawn])
         wanted = np.zeros(len(field), dtype=bool)
         for level_names in names.values():

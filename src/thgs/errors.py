@@ -7,9 +7,11 @@ checked) and then says what is wrong, so a user can act on it without reading a 
 
 from __future__ import annotations
 
+import contextlib
 import os
+from collections.abc import Iterator
 
-__all__ = ["InputError", "ThgsError"]
+__all__ = ["InputError", "ThgsError", "settings_as_flags"]
 
 
 class ThgsError(Exception):
@@ -33,3 +35,19 @@ class InputError(ThgsError, ValueError):
         # pickled with its source and problem, so that it survives a trip between processes
         # (a Ray worker's error re-raised in the driver) as the same type and message
         return type(self), (self.source, self.problem)
+
+
+@contextlib.contextmanager
+def settings_as_flags(*names: str, **renamed: str) -> Iterator[None]:
+    """Name a library setting the user gave as a command-line flag by that flag: an
+    :class:`InputError` about ``QueryConfig.top`` or ``pred_iou_threshold`` (a name in ``names``)
+    is raised again about ``--top`` or ``--pred-iou-threshold``; a setting in ``renamed`` is
+    named by the flag it maps to (``min_relevancy="threshold"``: ``--threshold``)."""
+    try:
+        yield
+    except InputError as error:
+        setting = error.source.rpartition(".")[2]
+        if setting not in names and setting not in renamed:
+            raise
+        flag = renamed.get(setting, setting)
+        raise InputError("--" + flag.replace("_", "-"), error.problem) from error

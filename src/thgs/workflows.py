@@ -36,7 +36,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Literal
 
 from thgs.choices import SelectionMode
-from thgs.errors import InputError
+from thgs.errors import InputError, settings_as_flags
 from thgs.field import SemanticField
 from thgs.field_config import FieldConfig
 from thgs.query import QueryConfig, Selection
@@ -372,7 +372,7 @@ def query_config(
         raise InputError("--level", f"the {mode} mode searches {searched}; use --mode level")
     if threshold is not None and mode in ("paper", "level"):
         raise InputError("--threshold", f"the {mode} mode uses no threshold")
-    try:
+    with settings_as_flags("level", "top", "threshold", "min_gaussians", min_relevancy="threshold"):
         return QueryConfig(
             mode=mode,
             level=3 if level is None else level,
@@ -381,12 +381,6 @@ def query_config(
             min_relevancy=threshold if mode == "auto" else None,
             min_gaussians=min_gaussians,
         ).check()
-    except InputError as error:
-        setting = error.source.rpartition(".")[2]
-        if setting not in ("level", "top", "threshold", "min_relevancy", "min_gaussians"):
-            raise
-        flag = "threshold" if setting == "min_relevancy" else setting
-        raise InputError("--" + flag.replace("_", "-"), error.problem) from error
 
 
 # --- export ---------------------------------------------------------------------------------------

@@ -3,14 +3,10 @@
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterator
-from contextlib import contextmanager
 from typing import ClassVar
 
 from rich.console import Console
 from rich.markup import escape
-
-from thgs.errors import InputError
 
 stdout = Console()
 stderr = Console(stderr=True)
@@ -24,20 +20,6 @@ def warn(message: str) -> None:
 def error(message: str) -> None:
     """Print one ``error:`` line on stderr."""
     stderr.print("[bold red]error:[/] " + escape(message), highlight=False)
-
-
-@contextmanager
-def settings_as_flags(*names: str) -> Iterator[None]:
-    """Name a library setting the user gave as a flag by that flag: an :class:`InputError` about
-    ``QueryConfig.top`` or ``pred_iou_threshold`` (a name in ``names``) is raised again about
-    ``--top`` or ``--pred-iou-threshold``."""
-    try:
-        yield
-    except InputError as error:
-        setting = error.source.rpartition(".")[2]
-        if setting not in names:
-            raise
-        raise InputError("--" + setting.replace("_", "-"), error.problem) from error
 
 
 class _ConsoleHandler(logging.Handler):

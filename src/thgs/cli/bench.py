@@ -9,7 +9,7 @@ from typing import Annotated, Literal
 import tyro
 
 from thgs.choices import Device
-from thgs.cli._console import StageBars, settings_as_flags, setup_logging, stage_progress, stdout
+from thgs.cli._console import StageBars, setup_logging, stage_progress, stdout
 from thgs.cli._outputs import check_output_folder
 
 __all__ = ["bench"]
@@ -65,7 +65,7 @@ def bench(
         verbose: log every stage.
     """
     from thgs.bench import BenchConfig, require_matplotlib, run_bench, write_bench
-    from thgs.errors import InputError
+    from thgs.errors import InputError, settings_as_flags
     from thgs.synthetic import CLIP_GRID
 
     setup_logging(verbose)

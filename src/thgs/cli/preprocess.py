@@ -7,9 +7,9 @@ from typing import Annotated, Literal
 
 import tyro
 
-from thgs.cli._console import settings_as_flags, setup_logging, stderr, stdout
+from thgs.cli._console import setup_logging, stderr, stdout
 from thgs.cli._outputs import check_output_folder
-from thgs.errors import InputError
+from thgs.errors import InputError, settings_as_flags
 from thgs.text import LANGSPLAT_SPACE
 
 __all__ = ["preprocess"]

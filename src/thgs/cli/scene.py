@@ -12,7 +12,7 @@ import tyro
 from rich.table import Table
 
 from thgs.choices import ScenePreset
-from thgs.cli._console import settings_as_flags, setup_logging, stderr, stdout
+from thgs.cli._console import setup_logging, stderr, stdout
 from thgs.scene import SceneSummary, load_scene, summarize
 
 __all__ = ["info", "synth"]
@@ -168,7 +168,7 @@ def synth(
     """
     from rich.progress import Progress
 
-    from thgs.errors import InputError
+    from thgs.errors import InputError, settings_as_flags
     from thgs.synthetic import (
         DatasetConfig,
         OracleConfig,

@@ -9,7 +9,8 @@ from typing import Annotated, Literal
 import tyro
 
 from thgs.choices import Device
-from thgs.cli._console import settings_as_flags, setup_logging, stdout
+from thgs.cli._console import setup_logging, stdout
+from thgs.errors import settings_as_flags
 
 __all__ = ["view"]
 
