@@ -195,6 +195,44 @@ def test_the_catalog_files(engine, small_dataset, tmp_path):
     assert row.startswith("| 0 | mug \\| cup | ") and row.count(" | ") == 6
 
 
+def test_each_phrase_found_is_pictured_in_the_view_that_shows_most_of_it(
+    engine, small_dataset, tmp_path
+):
+    from PIL import Image
+
+    from thgs.scene import load_scene
+    from thgs.views import highlighted, selection_masks, visible_pixels
+
+    scene = load_scene(small_dataset)
+    catalog = catalog_field(engine, VOCABULARY)
+    files = write_catalog(
+        tmp_path / "out",
+        catalog,
+        scene.gaussians,
+        engine,
+        field_name="f.thgs",
+        cameras=scene.cameras,
+    )
+    found = [entry for entry in catalog.entries if entry.found]
+    document = json.loads((tmp_path / "out" / "catalog.json").read_text())
+    pictured = [row for row in document["phrases"] if "picture" in row]
+    assert len(files) == 4 + len(found) + len(pictured) and pictured
+    for row in pictured:
+        entry = catalog.entries[row["label"]]
+        # the view is the one showing most of the selection (brute force over every view)
+        counts = visible_pixels(scene.gaussians, scene.cameras, entry.selection.gaussians)
+        assert scene.cameras.stems.index(row["view"]) == int(np.argmax(counts))
+        image = np.asarray(Image.open(tmp_path / "out" / row["picture"]))
+        camera = scene.cameras.select([scene.cameras.stems.index(row["view"])])
+        height, width = int(camera.heights[0]), int(camera.widths[0])
+        assert image.shape == (height, 2 * width, 3)
+        # the right half is tinted exactly where the selection's mask is
+        mask = selection_masks(scene.gaussians, camera, entry.selection.gaussians)
+        photo = image[:, :width].astype(float) / 255
+        expected = np.round(highlighted(photo, mask) * 255)
+        assert np.abs(image[:, width:] - expected).max() <= 1 and mask.any()
+
+
 def test_a_catalog_that_cannot_be_written_leaves_nothing(
     engine, small_dataset, tmp_path, monkeypatch
 ):
@@ -236,6 +274,13 @@ def test_thgs_catalog(small_field, tmp_path, capsys):
     found = sum("ply" in row for row in document["phrases"])
     assert f"{found} of {len(VOCABULARY)} phrases found" in " ".join(stdout.split())
     assert (out / "labels.ply").is_file() and (out / "mug.ply").is_file()
+    assert (out / "mug.png").is_file()  # the field's scene has cameras: pictures by default
+    bare = tmp_path / "bare"
+    code, _, err = run_cli(
+        ["catalog", str(small_field), str(words), "-o", str(bare), "--no-pictures"], capsys
+    )
+    assert code == 0, err
+    assert not list(bare.glob("*.png")) and (bare / "mug.ply").is_file()
 
 
 def test_thgs_catalog_names_a_bad_vocabulary_before_opening_the_field(tmp_path, capsys):

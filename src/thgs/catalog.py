@@ -20,6 +20,9 @@ each Gaussian the phrase that claims it most confidently:
     labels.ply        the scene's PLY with an int32 ``label`` property holding the same
     <phrase>.ply      every Gaussian the phrase's selection holds (before overlaps are
                       resolved), for each phrase found; names as ``thgs export`` gives them
+    <phrase>.png      with cameras: the view that shows most of the phrase's selection
+                      (:func:`thgs.views.best_views`), the selection tinted, the rest dimmed,
+                      for each phrase found and seen in some view
     catalog.json      the phrase table: index, phrase, what was selected, confidences,
                       Gaussians selected and kept, the PLY, or why nothing was found
     catalog.md        the same as a table
@@ -40,10 +43,11 @@ import numpy as np
 
 from thgs._atomic import atomic_files
 from thgs.errors import InputError
-from thgs.export import write_json, write_selection_ply
+from thgs.export import write_json, write_map_png, write_selection_ply
 from thgs.query import FieldQuery, QueryConfig, Selection
+from thgs.render import RasterConfig
 from thgs.results import unique_names
-from thgs.scene import Gaussians, write_ply
+from thgs.scene import Cameras, Gaussians, write_ply
 
 __all__ = [
     "CATALOG_FILES",
@@ -221,6 +225,38 @@ def _table(catalog: Catalog, files: dict[int, str]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _picture_views(
+    gaussians: Gaussians,
+    cameras: Cameras | None,
+    found: list[CatalogEntry],
+    raster: RasterConfig,
+) -> dict[int, int]:
+    """Phrase index → the view that shows most of its selection, for those some view shows."""
+    from thgs.views import best_views
+
+    if cameras is None or not found:
+        return {}
+    selected = np.stack([entry.selection.gaussians for entry in found], axis=1)
+    views = best_views(gaussians, cameras, selected, config=raster)
+    return {entry.index: int(view) for entry, view in zip(found, views.tolist()) if view >= 0}
+
+
+def _picture(
+    gaussians: Gaussians,
+    cameras: Cameras,
+    view: int,
+    entry: CatalogEntry,
+    raster: RasterConfig,
+) -> np.ndarray:
+    """The phrase's selection tinted in view ``view``, beside the plain view: [H, 2W, 3]."""
+    from thgs.views import highlighted, scene_image, selection_masks
+
+    camera = cameras.select([view])
+    photo, _ = scene_image(gaussians, camera, config=raster)
+    mask = selection_masks(gaussians, camera, entry.selection.gaussians, config=raster)
+    return np.concatenate([photo, highlighted(photo, mask)], axis=1)
+
+
 def write_catalog(
     out: str | os.PathLike[str],
     catalog: Catalog,
@@ -228,6 +264,8 @@ def write_catalog(
     engine: FieldQuery,
     *,
     field_name: str,
+    cameras: Cameras | None = None,
+    raster: RasterConfig = RasterConfig(),
 ) -> tuple[Path, ...]:
     """Write ``catalog`` into the folder ``out`` (module docstring), all of it or, on any failure
     or interruption, none of it (files are staged, then moved in).
@@ -238,6 +276,8 @@ def write_catalog(
         gaussians: the scene's N Gaussians, in the field's order (the PLY's).
         engine: the engine that answered (its regions size the table).
         field_name: recorded in ``catalog.json``.
+        cameras: the views to picture each phrase found in (its best one); None: no pictures.
+        raster: the rasterization settings of the pictures (the field's lift's).
 
     Returns:
         the files written, ``labels.npy`` first.
@@ -255,6 +295,13 @@ def write_catalog(
     names = unique_names(catalog.phrases, taken=[Path(name).stem for name in CATALOG_FILES])
     files = {
         entry.index: f"{name}.ply" for entry, name in zip(catalog.entries, names) if entry.found
+    }
+    found = [entry for entry in catalog.entries if entry.index in files]
+    views = _picture_views(gaussians, cameras, found, raster)
+    pictures = {
+        entry.index: f"{name}.png"
+        for entry, name in zip(catalog.entries, names)
+        if entry.index in views
     }
     extras = dict(gaussians.extras)
     if "label" in extras:
@@ -275,22 +322,36 @@ def write_catalog(
                 **entry.selection.to_json(engine.regions),
                 "kept": entry.kept,
                 **({"ply": files[entry.index]} if entry.index in files else {}),
+                **(
+                    {"picture": pictures[entry.index], "view": cameras.stems[views[entry.index]]}
+                    if cameras is not None and entry.index in pictures
+                    else {}
+                ),
             }
             for entry in catalog.entries
         ],
     }
-    written = [out / name for name in CATALOG_FILES] + [out / name for name in files.values()]
+    written = (
+        [out / name for name in CATALOG_FILES]
+        + [out / name for name in files.values()]
+        + [out / name for name in pictures.values()]
+    )
     created = not out.exists()
     try:
         with atomic_files(written) as staged:
-            labels_npy, labels_ply, table_json, table_md, *plys = staged
+            labels_npy, labels_ply, table_json, table_md = staged[: len(CATALOG_FILES)]
+            plys = staged[len(CATALOG_FILES) : len(CATALOG_FILES) + len(files)]
+            pngs = staged[len(CATALOG_FILES) + len(files) :]
             np.save(labels_npy, catalog.labels.astype(np.int32), allow_pickle=False)
             write_ply(labels_ply, replace(gaussians, extras=extras))
             write_json(table_json, document)
             table_md.write_text(_table(catalog, files), encoding="utf-8")
-            found = [entry for entry in catalog.entries if entry.index in files]
             for entry, path in zip(found, plys):
                 write_selection_ply(path, gaussians, entry.selection.gaussians)
+            pictured = [entry for entry in found if entry.index in pictures]
+            for entry, path in zip(pictured, pngs):
+                assert cameras is not None
+                write_map_png(path, _picture(gaussians, cameras, views[entry.index], entry, raster))
     except BaseException:
         if created:
             with contextlib.suppress(OSError):  # only if nothing else was put there

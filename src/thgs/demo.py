@@ -40,7 +40,7 @@ from thgs.scene import Scene, load_scene
 from thgs.synthetic import evaluation_views
 from thgs.synthetic.cache import default_cache, synthetic_dataset
 from thgs.text import MINILM_SPACE, load_text_encoder
-from thgs.views import best_views, selection_masks
+from thgs.views import best_views, highlighted, selection_masks
 from thgs.workflows import BuildRequest, build_field_file
 
 __all__ = [
@@ -51,8 +51,6 @@ __all__ = [
 ]
 
 logger = logging.getLogger(__name__)
-
-_HIGHLIGHT = np.array([0.0, 0.9, 1.0])
 
 
 @dataclass(frozen=True)
@@ -325,7 +323,7 @@ def run_demo(
         )
         mask = selection_masks(scene.gaussians, camera, selection.gaussians)
         photo = pictures[drawn]
-        tinted = np.where(mask[..., None], 0.45 * photo + 0.55 * _HIGHLIGHT, 0.55 * photo)
+        tinted = highlighted(photo, mask)
         image = out / f"query-{slug(text)}.png"
         write_map_png(image, np.concatenate([photo, tinted], axis=1))
         files.append(image)

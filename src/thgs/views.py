@@ -29,10 +29,13 @@ from thgs.render import RasterConfig, render
 from thgs.scene import Cameras, Gaussians
 
 __all__ = [
+    "HIGHLIGHT",
     "Pick",
     "best_views",
+    "highlighted",
     "pick",
     "relevancy_map",
+    "scene_image",
     "selection_masks",
     "selection_opacity",
     "visible_pixels",
@@ -53,6 +56,40 @@ def _render_columns(
     features = torch.from_numpy(np.ascontiguousarray(values, dtype=np.float64))
     out = render(gaussians, camera, features.to(gaussians.device), config=config)
     return out.image.detach().cpu().numpy()
+
+
+def scene_image(
+    gaussians: Gaussians,
+    camera: Cameras,
+    *,
+    background: tuple[float, float, float] = (0.5, 0.5, 0.5),
+    config: RasterConfig = RasterConfig(),
+) -> tuple[np.ndarray, np.ndarray]:
+    """The scene as a photo of one view: colours seen from the camera
+    (:meth:`thgs.scene.Gaussians.view_colors`) over ``background``.
+
+    Returns:
+        ([H, W, 3] float64 RGB in [0, 1], [H, W] int64 index of each pixel's largest-weight
+        Gaussian, −1 where none).
+    """
+    centre = camera.centers()[0].to(device=gaussians.device, dtype=gaussians.means.dtype)
+    colors = gaussians.view_colors(centre).to(torch.float64)
+    out = render(gaussians, camera, colors, config=config)
+    image = out.image.detach().to(torch.float64).cpu().numpy()
+    alpha = out.alpha.detach().to(torch.float64).cpu().numpy()
+    rgb = image + (1.0 - alpha)[..., None] * np.asarray(background, dtype=np.float64)
+    return np.clip(rgb, 0.0, 1.0), out.max_id.detach().cpu().numpy()
+
+
+HIGHLIGHT = (0.0, 0.9, 1.0)
+"""The colour a selection is tinted with in pictures (cyan)."""
+
+
+def highlighted(image: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """``image`` ([H, W, 3] in [0, 1]) with the ``mask``'s pixels ([H, W] bool) tinted
+    :data:`HIGHLIGHT` and the rest dimmed."""
+    tint = 0.45 * image + 0.55 * np.asarray(HIGHLIGHT)
+    return np.where(mask[..., None], tint, 0.55 * image)
 
 
 def selection_opacity(

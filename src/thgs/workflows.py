@@ -6,7 +6,8 @@ the demo call these and only format what they return, so each action has one imp
 its files are written the same way whoever asks:
 
 - :func:`build_field_file` — scene + guidance + settings → a field file, with the scene and text
-  model recorded in its provenance (:class:`BuildRequest` → :class:`BuiltField`);
+  model recorded in its provenance (:class:`BuildRequest` → :class:`BuiltField`); from the
+  splat alone, the guidance is first made on virtual views (:mod:`thgs.splat_views`);
 - :func:`evaluate_field_file` — a field against a benchmark's ground truth → the JSON report and
   its markdown table, written together (:class:`EvalRequest` → :class:`EvalOutcome`);
 - :func:`export_field_file` — selections as PLYs, the scene coloured by region, labels, the
@@ -31,7 +32,7 @@ from __future__ import annotations
 import contextlib
 import logging
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Literal
 
@@ -45,6 +46,7 @@ if TYPE_CHECKING:
     from thgs.catalog import Catalog
     from thgs.eval.dataset import EvalReport, GroundTruth
     from thgs.scene_graph import SceneGraph
+    from thgs.splat_views import SplatViewsRequest
 
 __all__ = [
     "BuildRequest",
@@ -92,6 +94,10 @@ class BuildRequest:
         lift_cache: a folder to keep the lift in and reuse it from.
         ray: lift and partition as Ray tasks on the Ray this process is connected to
             (:func:`thgs.cluster.connect_ray`).
+        splat_views: build from the splat alone: place virtual cameras, render them and make
+            their guidance first (:func:`thgs.splat_views.prepare_splat_views`), then build
+            from that folder; ``source``, ``guidance``, ``images``, ``scale`` and ``resize``
+            must then be left unset.
     """
 
     scene: Path
@@ -108,6 +114,7 @@ class BuildRequest:
     device: str = "auto"
     lift_cache: Path | None = None
     ray: bool = False
+    splat_views: SplatViewsRequest | None = None
 
 
 @dataclass(frozen=True)
@@ -167,10 +174,41 @@ def _text_model(request: BuildRequest, guidance: Path) -> Path | None:
     return model
 
 
+def _with_splat_views(request: BuildRequest, progress: Progress | None) -> BuildRequest:
+    """``request`` reading its cameras and guidance from the splat's views folder, made or
+    resumed now."""
+    from thgs.splat_views import prepare_splat_views
+
+    assert request.splat_views is not None
+    given = {
+        "--source": request.source is not None,
+        "--guidance": request.guidance is not None,
+        "--images": request.images is not None,
+        "--scale": request.scale != 1.0,
+        "--resize": request.resize,
+    }
+    clashing = [flag for flag, set_ in given.items() if set_]
+    if clashing:
+        raise InputError(
+            "--from-splat",
+            f"makes its own cameras, renders and guidance; leave out {', '.join(clashing)}",
+        )
+    prepared = prepare_splat_views(
+        request.scene,
+        request.splat_views,
+        iteration=request.iteration,
+        device=request.device,
+        progress=progress,
+    )
+    views = prepared.views
+    return replace(request, source=views.path, guidance=views.guidance, splat_views=None)
+
+
 def build_field_file(request: BuildRequest, *, progress: Progress | None = None) -> BuiltField:
     """Load the scene and its guidance, build the semantic field and write it to
     ``request.out`` (:func:`thgs.field.save_field`, atomic), its provenance recording the scene
-    and the text model.
+    and the text model. With ``request.splat_views``, the cameras, renders and guidance are
+    made from the splat first, in that folder.
 
     Raises:
         InputError: no cameras, no guidance folder, masks or features that do not fit their
@@ -190,6 +228,8 @@ def build_field_file(request: BuildRequest, *, progress: Progress | None = None)
         raise InputError("--lift-cache", f"{cache} is a file; name a folder to keep lifts in")
     if request.text_model is not None and not request.text_model.is_dir():
         raise InputError("--text-model", f"{request.text_model} is not a folder")
+    if request.splat_views is not None:
+        request = _with_splat_views(request, progress)
     loaded = load_scene(
         request.scene,
         source=request.source,
@@ -200,7 +240,8 @@ def build_field_file(request: BuildRequest, *, progress: Progress | None = None)
     if loaded.cameras is None:
         raise InputError(
             request.scene,
-            f"no cameras{_unfound_source(loaded)}; pass --source with COLMAP or transforms.json",
+            f"no cameras{_unfound_source(loaded)}; pass --source with COLMAP or transforms.json, "
+            "or build from the splat alone with --from-splat",
         )
     guidance = request.guidance
     if guidance is None:
@@ -209,7 +250,8 @@ def build_field_file(request: BuildRequest, *, progress: Progress | None = None)
             raise InputError(
                 guidance,
                 f"language features folder not found{_unfound_source(loaded)}; pass --source "
-                "with the training data folder that holds language_features/, or --guidance",
+                "with the training data folder that holds language_features/, or --guidance, "
+                "or make guidance on renders of the splat with --from-splat",
             )
     views = load_guidance(guidance, loaded.cameras, resize=request.resize, lazy=True)
     check_masks(views, guidance)
@@ -546,6 +588,8 @@ class CatalogRequest:
         query: how each phrase selects (default: the automatic selection).
         scene: the scene the field was built on, if not where the field records.
         text_model: the text model's folder, instead of the one the field records.
+        pictures: picture each phrase found in the view of the field's scene that shows most
+            of it (``<phrase>.png``); a scene without cameras gets none.
     """
 
     field: Path
@@ -554,6 +598,7 @@ class CatalogRequest:
     query: QueryConfig = QueryConfig()
     scene: Path | None = None
     text_model: Path | None = None
+    pictures: bool = True
 
 
 @dataclass(frozen=True)
@@ -581,6 +626,7 @@ def catalog_field_file(request: CatalogRequest) -> CatalogOutcome:
     """
     from thgs.catalog import catalog_field, read_vocabulary, write_catalog
     from thgs.field_scene import field_text_encoder, open_field_scene
+    from thgs.pipeline import lifted_raster
     from thgs.query import FieldQuery
 
     phrases = read_vocabulary(request.vocabulary)
@@ -588,7 +634,16 @@ def catalog_field_file(request: CatalogRequest) -> CatalogOutcome:
     encoder = field_text_encoder(semantic, request.field, request.text_model)
     engine = FieldQuery(semantic, encoder, request.query, source=str(request.field))
     catalog = catalog_field(engine, phrases)
+    cameras = loaded.cameras if request.pictures else None
+    if request.pictures and cameras is None:
+        logger.warning("%s: the field's scene has no cameras, so no pictures", request.field)
     files = write_catalog(
-        request.out, catalog, loaded.gaussians, engine, field_name=str(request.field)
+        request.out,
+        catalog,
+        loaded.gaussians,
+        engine,
+        field_name=str(request.field),
+        cameras=cameras,
+        raster=lifted_raster(semantic, str(request.field)),
     )
     return CatalogOutcome(catalog, files)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import contextlib
 import math
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Literal
 
 import tyro
 from rich.table import Table
@@ -13,6 +13,8 @@ from rich.table import Table
 from thgs.choices import Device, FieldPreset, ScenePreset
 from thgs.cli._console import StageBars, setup_logging, stage_progress, stdout
 from thgs.cli._outputs import check_output_file, check_output_folder
+from thgs.errors import InputError
+from thgs.text import LANGSPLAT_SPACE
 
 __all__ = ["build", "demo"]
 
@@ -33,6 +35,74 @@ def _counts_table(title: str, counts, timings: dict[str, float]) -> Table:
         + ")",
     )
     return table
+
+
+def _flag(name: str) -> str:
+    return "--" + name.replace("_", "-")
+
+
+def _refuse_without_splat(**given: bool) -> None:
+    named = [_flag(name) for name, present in given.items() if present]
+    if named:
+        raise InputError(named[0], "applies only with --from-splat")
+
+
+def _guidance_source(
+    sam: str, clip: str, space: str | None, device: str, dtype: str, oracle: Path | None
+):
+    from thgs.splat_views import ModelGuidance, OracleGuidance
+
+    if oracle is None:
+        from thgs.device import resolve_device
+
+        return ModelGuidance(
+            sam=sam, clip=clip, space=space, device=str(resolve_device(device)), dtype=dtype
+        )
+    changed = {
+        "--sam": sam != "facebook/sam-vit-huge",
+        "--clip": clip != LANGSPLAT_SPACE,
+        "--dtype": dtype != "float32",
+        "--space": space is not None,
+    }
+    clashing = [flag for flag, present in changed.items() if present]
+    if clashing:
+        raise InputError("--oracle", f"makes its own guidance; leave out {', '.join(clashing)}")
+    return OracleGuidance(oracle)
+
+
+def _splat_views_request(
+    out: Path,
+    *,
+    views: Path | None,
+    overwrite: bool,
+    model_cameras: bool,
+    orbit_views: tuple[int, ...],
+    close_views: int,
+    view_size: tuple[int, int],
+    guidance,
+):
+    from thgs.errors import settings_as_flags
+    from thgs.splat_views import PlacementConfig, SplatViewsRequest, default_views_folder
+
+    width, height = view_size
+    scales = PlacementConfig().core_percentiles
+    if len(orbit_views) != len(scales):
+        raise InputError(
+            "--orbit-views",
+            f"give {len(scales)} counts (around the objects, around the whole scene), got "
+            f"{len(orbit_views)}",
+        )
+    with settings_as_flags("orbit_views", "close_views", width="view_size", height="view_size"):
+        placement = PlacementConfig(
+            width=width, height=height, orbit_views=orbit_views, close_views=close_views
+        ).check()
+    return SplatViewsRequest(
+        folder=views if views is not None else default_views_folder(out),
+        guidance=guidance,
+        placement=placement,
+        model_cameras=model_cameras,
+        overwrite=overwrite,
+    )
 
 
 def build(
@@ -57,6 +127,17 @@ def build(
     lift_cache: Path | None = None,
     threads: int | None = None,
     ray: Annotated[str | None, tyro.conf.arg(metavar="[ADDRESS]")] = None,
+    from_splat: bool = False,
+    views: Path | None = None,
+    overwrite_views: bool = False,
+    model_cameras: bool = True,
+    orbit_views: tuple[int, ...] = (20, 10),
+    close_views: int = 12,
+    view_size: tuple[int, int] = (512, 384),
+    sam: str = "facebook/sam-vit-huge",
+    clip: str = LANGSPLAT_SPACE,
+    dtype: Literal["float32", "bfloat16", "float16"] = "float32",
+    oracle: Path | None = None,
     verbose: bool = False,
 ) -> None:
     """Build the semantic field of a scene from its views' masks and mask features.
@@ -111,6 +192,29 @@ def build(
         ray: lift the views and solve the partition's blocks as Ray tasks: --ray starts a
             local Ray, --ray ADDRESS joins a running cluster (e.g. 10.0.0.1:6379), whose
             workers need thgs installed; needs thgs[cluster]. The field is the same.
+        from_splat: build from the splat alone, without photos: place virtual cameras (the
+            model's cameras.json when present, else an orbit; then close-ups of what they
+            leave unseen), render them, run SAM and CLIP on the renders (--sam, --clip) and
+            build from that (docs/build.md). Not with --source, --guidance, --images,
+            --scale or --resize.
+        views: with --from-splat: the folder for the cameras, renders and guidance, kept so
+            that a rerun resumes (default: OUT's name with .views, beside it).
+        overwrite_views: with --from-splat: replace a views folder made for another scene or
+            other settings.
+        model_cameras: with --from-splat: start from the model's own cameras when it has
+            them; --no-model-cameras always places the orbit.
+        orbit_views: with --from-splat: orbit views around the objects and around the whole
+            scene.
+        close_views: with --from-splat: at most this many close-ups of what the orbit leaves
+            unseen.
+        view_size: with --from-splat: width and height of the virtual views in pixels.
+        sam: with --from-splat: SAM or SAM 2 (a local folder or a cached Hugging Face id), as
+            in thgs preprocess.
+        clip: with --from-splat: the CLIP model, likewise.
+        dtype: with --from-splat: the models' precision (bfloat16 or float16 on a GPU).
+        oracle: with --from-splat, for a scene thgs synth wrote: make the guidance from this
+            dataset folder's exact ground truth with its own oracle settings instead of SAM
+            and CLIP (to score the splat-only path against exact answers).
         verbose: log every stage with its time.
     """
     from thgs.device import set_cpu_threads
@@ -121,6 +225,31 @@ def build(
     check_output_file(out)
     if threads is not None:
         set_cpu_threads(threads, "--threads")
+    splat_views = None
+    if from_splat:
+        splat_views = _splat_views_request(
+            out,
+            views=views,
+            overwrite=overwrite_views,
+            model_cameras=model_cameras,
+            orbit_views=orbit_views,
+            close_views=close_views,
+            view_size=view_size,
+            guidance=_guidance_source(sam, clip, space, device, dtype, oracle),
+        )
+    else:
+        _refuse_without_splat(
+            views=views is not None,
+            overwrite_views=overwrite_views,
+            no_model_cameras=not model_cameras,
+            orbit_views=orbit_views != (20, 10),
+            close_views=close_views != 12,
+            view_size=view_size != (512, 384),
+            sam=sam != "facebook/sam-vit-huge",
+            clip=clip != LANGSPLAT_SPACE,
+            dtype=dtype != "float32",
+            oracle=oracle is not None,
+        )
     settings = chosen_field_config(
         preset,
         read_field_config(config) if config is not None else None,
@@ -143,6 +272,7 @@ def build(
         device=device,
         lift_cache=lift_cache,
         ray=ray is not None,
+        splat_views=splat_views,
     )
     with contextlib.ExitStack() as stack:
         if ray is not None:

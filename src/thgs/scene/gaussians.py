@@ -13,10 +13,44 @@ from torch import Tensor
 
 from thgs.errors import InputError
 
-__all__ = ["SH_C0", "Gaussians", "quaternions_to_matrices"]
+__all__ = ["SH_C0", "Gaussians", "quaternions_to_matrices", "sh_basis"]
 
 SH_C0 = 0.28209479177387814
 """Degree-0 real spherical-harmonics constant: colour = 0.5 + SH_C0 · DC coefficient."""
+
+
+def sh_basis(directions: Tensor, degree: int) -> Tensor:
+    """[N, (degree + 1)²] real spherical harmonics of unit ``directions`` [N, 3], in the order
+    and with the signs of 3DGS's ``eval_sh`` (degree ≤ 3): coefficient ``k`` of a Gaussian's
+    ``sh[:, k]`` multiplies column ``k``."""
+    if not 0 <= degree <= 3:
+        raise InputError("sh degree", f"must be 0–3, got {degree}")
+    x, y, z = directions.unbind(-1)
+    columns = [torch.full_like(x, SH_C0)]
+    if degree >= 1:
+        c1 = 0.4886025119029199
+        columns += [-c1 * y, c1 * z, -c1 * x]
+    if degree >= 2:
+        xx, yy, zz = x * x, y * y, z * z
+        columns += [
+            1.0925484305920792 * x * y,
+            -1.0925484305920792 * y * z,
+            0.31539156525252005 * (2.0 * zz - xx - yy),
+            -1.0925484305920792 * x * z,
+            0.5462742152960396 * (xx - yy),
+        ]
+    if degree >= 3:
+        columns += [
+            -0.5900435899266435 * y * (3.0 * xx - yy),
+            2.890611442640554 * x * y * z,
+            -0.4570457994644658 * y * (4.0 * zz - xx - yy),
+            0.3731763325901154 * z * (2.0 * zz - 3.0 * xx - 3.0 * yy),
+            -0.4570457994644658 * x * (4.0 * zz - xx - yy),
+            1.445305721320277 * z * (xx - yy),
+            -0.5900435899266435 * x * (xx - 3.0 * yy),
+        ]
+    return torch.stack(columns, dim=-1)
+
 
 logger = logging.getLogger(__name__)
 
@@ -124,6 +158,17 @@ class Gaussians:
     def dc_colors(self) -> Tensor:
         """[N, 3] view-independent RGB in [0, 1]: ``clamp(0.5 + SH_C0 · sh[:, 0], 0, 1)``."""
         return (0.5 + SH_C0 * self.sh[:, 0]).clamp(0.0, 1.0)
+
+    def view_colors(self, camera_centre: Tensor | np.ndarray) -> Tensor:
+        """[N, 3] RGB in [0, 1] seen from ``camera_centre`` ([3], world frame): the real
+        spherical harmonics of degree :attr:`sh_degree` evaluated along the unit direction from
+        the camera to each centre, plus 0.5, clamped (3DGS's colour model; degree 0 gives
+        :meth:`dc_colors`)."""
+        centre = torch.as_tensor(camera_centre, dtype=self.means.dtype, device=self.device)
+        direction = self.means - centre.reshape(1, 3)
+        direction = direction / direction.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        basis = sh_basis(direction, self.sh_degree)
+        return (0.5 + torch.einsum("nk,nkc->nc", basis, self.sh)).clamp(0.0, 1.0)
 
     def select(self, index: Tensor | np.ndarray) -> Gaussians:
         """The Gaussians at ``index`` ([N] bool mask or [M] int64 indices), in that order."""
