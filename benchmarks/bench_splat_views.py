@@ -14,8 +14,9 @@ selection) and 3D-OVS mIoU. Times: the splat's views (placement, renders, guidan
 build, in seconds. One JSON line per scene, then a markdown table with the means, the worst
 difference (splat − real) per metric and the coverage the placement reached.
 
-``--gaussians N`` runs one scene of that size instead (e.g. 1000000 for the placement and
-rendering cost of a large scene; its preset's other settings stay synth-small's).
+``--gaussians N`` gives the scenes that many Gaussians (e.g. 1000000 for the cost of a large
+scene; the preset's other settings stay synth-small's); ``--timing-only`` then times the build
+from the real cameras and the splat's views and stops there (no splat build, no scores).
 """
 
 from __future__ import annotations
@@ -50,7 +51,9 @@ def score(dataset: Path, field: Path) -> dict[str, float]:
     return {name: outcome.report.metric(protocol, key) for name, protocol, key in METRICS}
 
 
-def run_scene(out: Path, seed: int, kind: str, gaussians: int | None) -> dict:
+def run_scene(
+    out: Path, seed: int, kind: str, gaussians: int | None, timing_only: bool = False
+) -> dict:
     dataset, _ = synthetic_dataset(
         out / "datasets", "synth-small", seed, gaussians, None, MiniLMEncoder(), kind=kind
     )
@@ -62,7 +65,8 @@ def run_scene(out: Path, seed: int, kind: str, gaussians: int | None) -> dict:
     start = time.perf_counter()
     build_field_file(BuildRequest(scene=dataset, out=real, config=config))
     row["real build s"] = time.perf_counter() - start
-    row["real"] = score(dataset, real)
+    if not timing_only:
+        row["real"] = score(dataset, real)
 
     folder = out / f"{tag}.views"
     shutil.rmtree(folder, ignore_errors=True)
@@ -73,6 +77,8 @@ def run_scene(out: Path, seed: int, kind: str, gaussians: int | None) -> dict:
     row["views s"] = time.perf_counter() - start
     row["views"] = len(prepared.views.cameras)
     row["covered"] = prepared.views.record["covered"]
+    if timing_only:
+        return row
     splat = out / f"{tag}-splat.thgs"
     start = time.perf_counter()
     build_field_file(BuildRequest(scene=ply, out=splat, config=config, splat_views=request))
@@ -114,16 +120,18 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, nargs="+", default=[5, 6])
     parser.add_argument("--kinds", nargs="+", default=["2dgs", "3dgs"])
     parser.add_argument("--gaussians", type=int, default=None)
+    parser.add_argument("--timing-only", action="store_true")
     parser.add_argument("--out", type=Path, default=Path("/tmp/thgs-bench-splat-views"))
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     rows = []
     for seed in args.seeds:
         for kind in args.kinds:
-            row = run_scene(args.out, seed, kind, args.gaussians)
+            row = run_scene(args.out, seed, kind, args.gaussians, args.timing_only)
             rows.append(row)
             print(json.dumps(row), flush=True)
-    print(table(rows))
+    if not args.timing_only:
+        print(table(rows))
 
 
 if __name__ == "__main__":

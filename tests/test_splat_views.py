@@ -39,7 +39,13 @@ from thgs.splat_views import (
 from thgs.workflows import BuildRequest, EvalRequest, build_field_file, evaluate_field_file
 
 SMALL = PlacementConfig(
-    width=160, height=120, orbit_views=(8, 4), close_views=3, close_directions=6, min_gain=5
+    width=160,
+    height=120,
+    orbit_views=(8, 4),
+    core_percentiles=(50.0, 90.0),
+    close_views=3,
+    close_directions=6,
+    min_gain=5,
 )
 
 
@@ -94,7 +100,7 @@ def _table_scene(n_floor: int = 3000, seed: int = 0, up: int = 1) -> Gaussians:
 
 @pytest.mark.parametrize("up", [1, -1])
 def test_scene_frame_finds_up_from_the_floor(up):
-    frame = scene_frame(_table_scene(up=up))
+    frame = scene_frame(_table_scene(up=up), SMALL)
     np.testing.assert_allclose(frame.up, [0, 0, up], atol=0.05)
     assert frame.radii[0] < frame.radii[1]  # half the Gaussians are nearer than 90 %
     given = scene_frame(_table_scene(up=up), PlacementConfig(up=(0.0, 0.0, -2.0 * up)))
@@ -178,9 +184,9 @@ def test_close_ups_see_what_the_orbit_misses():
     config = PlacementConfig(
         width=128,
         height=96,
-        orbit_views=(6, 0),
+        orbit_views=(6,),
         elevations_deg=(60.0,),
-        core_percentiles=(90.0, 99.0),
+        core_percentiles=(90.0,),
         close_views=4,
         min_gain=20,
         up=(0.0, 0.0, 1.0),
@@ -211,7 +217,7 @@ def test_placement_refuses_scenes_without_usable_gaussians(tmp_path):
     with pytest.raises(InputError, match="degenerate"):
         place_cameras(point, SMALL, source="point.ply")
     with pytest.raises(InputError, match=r"PlacementConfig\.core_percentiles"):
-        PlacementConfig(orbit_views=(4,)).check()
+        PlacementConfig(orbit_views=(4, 4)).check()
 
 
 # --- the views folder -----------------------------------------------------------------------------
@@ -373,7 +379,7 @@ def test_model_guidance_runs_sam_and_clip_on_the_renders(tmp_path):
         stability_threshold=0.0,
         min_region_area=0,
     )
-    placement = PlacementConfig(width=64, height=48, orbit_views=(3, 1), close_views=0)
+    placement = PlacementConfig(width=64, height=48, orbit_views=(4,), close_views=0)
     request = SplatViewsRequest(
         tmp_path / "views", ModelGuidance(sam=str(sam), clip=str(clip), masks=masks), placement
     )
@@ -403,8 +409,10 @@ def test_cli_from_splat_options(small_dataset, tmp_path, capsys):
     assert code != 0 and "leave out --source" in err
     code, err = run([*splat, *oracle, "--sam", "x"])
     assert code != 0 and "leave out --sam" in err
-    code, err = run([*splat, "--orbit-views", "5"])
-    assert code != 0 and "--orbit-views" in err
+    code, err = run([*splat, "--orbit-views", "5", "6"])
+    assert code != 0 and "--orbit-views" in err and "one count per orbit sphere" in err
+    code, err = run([*splat, "--orbit-views", "5", "6", "--orbit-spheres", "50", "120"])
+    assert code != 0 and "--orbit-spheres" in err
     code, err = run([*splat, "--view-size", "8", "8"])
     assert code != 0 and "--view-size" in err
     assert not out.exists()
@@ -428,6 +436,9 @@ def test_cli_builds_from_the_splat_and_queries(small_dataset, tmp_path, capsys):
         "--orbit-views",
         "8",
         "4",
+        "--orbit-spheres",
+        "50",
+        "90",
         "--close-views",
         "3",
         "--view-size",

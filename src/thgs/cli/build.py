@@ -77,6 +77,7 @@ def _splat_views_request(
     overwrite: bool,
     model_cameras: bool,
     orbit_views: tuple[int, ...],
+    orbit_spheres: tuple[float, ...],
     close_views: int,
     view_size: tuple[int, int],
     guidance,
@@ -85,16 +86,25 @@ def _splat_views_request(
     from thgs.splat_views import PlacementConfig, SplatViewsRequest, default_views_folder
 
     width, height = view_size
-    scales = PlacementConfig().core_percentiles
-    if len(orbit_views) != len(scales):
+    if len(orbit_views) != len(orbit_spheres):
         raise InputError(
             "--orbit-views",
-            f"give {len(scales)} counts (around the objects, around the whole scene), got "
+            f"give one count per orbit sphere (--orbit-spheres has {len(orbit_spheres)}), got "
             f"{len(orbit_views)}",
         )
-    with settings_as_flags("orbit_views", "close_views", width="view_size", height="view_size"):
+    with settings_as_flags(
+        "orbit_views",
+        "close_views",
+        width="view_size",
+        height="view_size",
+        core_percentiles="orbit_spheres",
+    ):
         placement = PlacementConfig(
-            width=width, height=height, orbit_views=orbit_views, close_views=close_views
+            width=width,
+            height=height,
+            orbit_views=orbit_views,
+            core_percentiles=orbit_spheres,
+            close_views=close_views,
         ).check()
     return SplatViewsRequest(
         folder=views if views is not None else default_views_folder(out),
@@ -131,7 +141,8 @@ def build(
     views: Path | None = None,
     overwrite_views: bool = False,
     model_cameras: bool = True,
-    orbit_views: tuple[int, ...] = (20, 10),
+    orbit_views: tuple[int, ...] = (30,),
+    orbit_spheres: tuple[float, ...] = (50.0,),
     close_views: int = 12,
     view_size: tuple[int, int] = (512, 384),
     sam: str = "facebook/sam-vit-huge",
@@ -203,8 +214,10 @@ def build(
             other settings.
         model_cameras: with --from-splat: start from the model's own cameras when it has
             them; --no-model-cameras always places the orbit.
-        orbit_views: with --from-splat: orbit views around the objects and around the whole
-            scene.
+        orbit_views: with --from-splat: the number of orbit views, one count per orbit sphere.
+        orbit_spheres: with --from-splat: each orbit frames the sphere around the scene's centre
+            that holds this percentage of its opaque Gaussians (50: where the objects are; add
+            e.g. --orbit-spheres 50 90 --orbit-views 20 10 for a second, wider orbit).
         close_views: with --from-splat: at most this many close-ups of what the orbit leaves
             unseen.
         view_size: with --from-splat: width and height of the virtual views in pixels.
@@ -233,6 +246,7 @@ def build(
             overwrite=overwrite_views,
             model_cameras=model_cameras,
             orbit_views=orbit_views,
+            orbit_spheres=orbit_spheres,
             close_views=close_views,
             view_size=view_size,
             guidance=_guidance_source(sam, clip, space, device, dtype, oracle),
@@ -242,7 +256,8 @@ def build(
             views=views is not None,
             overwrite_views=overwrite_views,
             no_model_cameras=not model_cameras,
-            orbit_views=orbit_views != (20, 10),
+            orbit_views=orbit_views != (30,),
+            orbit_spheres=orbit_spheres != (50.0,),
             close_views=close_views != 12,
             view_size=view_size != (512, 384),
             sam=sam != "facebook/sam-vit-huge",

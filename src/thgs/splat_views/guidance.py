@@ -154,8 +154,7 @@ def _model_views(
 
     if source.dtype not in ("float32", "bfloat16", "float16"):
         raise InputError("--dtype", f"must be float32, bfloat16 or float16, got {source.dtype}")
-    rendered = render_views(views, gaussians, raster=raster, progress=progress)
-    jobs = image_jobs(views.images, cameras=views.cameras)
+    # the models first: a missing one stops the run before any rendering
     segmenter, encoder = load_preprocess_models(
         source.sam,
         source.clip,
@@ -163,6 +162,8 @@ def _model_views(
         device=source.device,
         dtype=getattr(torch, source.dtype),
     )
+    rendered = render_views(views, gaussians, raster=raster, progress=progress)
+    jobs = image_jobs(views.images, cameras=views.cameras)
     done = 0
 
     def on_image(stem: str, seconds: float | None) -> None:

@@ -5,13 +5,14 @@ Placement runs in two steps, both on the Gaussians alone:
 1. **Base views.** The model's own cameras when it has them (``cameras.json`` beside the PLY:
    the training views, which saw the scene), scaled down to at most ``max_width`` pixels wide;
    else an *orbit*: rings of cameras at several elevations around the scene's centre (the
-   median centre of the opaque Gaussians), looking at it, at two scales: the spheres holding
-   ``core_percentiles`` % of the opaque Gaussians (by default half of them: where the objects
-   are; and 90 %: the whole scene without its far background), each filling the narrower side
-   of the image. "Up" is the model cameras' mean up direction when there are some; else the axis
-   along which the opaque Gaussians spread least (a floor, a table top), pointing away from the
-   denser of its two extremes (things stand on a floor or a table, which is the densest layer;
-   their tops are sparse); or as given.
+   median centre of the opaque Gaussians), looking at it from where the sphere holding
+   ``core_percentiles`` % of the opaque Gaussians fills the narrower side of the image (by
+   default half of them: where the objects are; the floor and far background around them are
+   left to the close-ups). Several scales can be given, each with its own number of views.
+   "Up" is the model cameras' mean up direction when there are some; else the axis along which
+   the opaque Gaussians spread least (a floor, a table top), pointing away from the denser of its
+   two extremes (things stand on a floor or a table, which is the densest layer; their tops are
+   sparse); or as given.
 2. **Close-ups.** Every base view is rendered at ``coverage_scale`` of its size; a Gaussian is
    *seen* in a view when it is the largest-weight Gaussian of at least one pixel. Opaque
    Gaussians seen in fewer than ``min_views`` views (under a table, between objects, the small
@@ -88,9 +89,9 @@ class PlacementConfig:
     width: int = 512
     height: int = 384
     fov_deg: float = 60.0
-    orbit_views: tuple[int, ...] = (20, 10)
+    orbit_views: tuple[int, ...] = (30,)
     elevations_deg: tuple[float, ...] = (20.0, 45.0, 70.0)
-    core_percentiles: tuple[float, ...] = (50.0, 90.0)
+    core_percentiles: tuple[float, ...] = (50.0,)
     distance_margin: float = 1.0
     up: tuple[float, float, float] | None = None
     max_width: int = 640
