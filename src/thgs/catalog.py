@@ -20,9 +20,10 @@ each Gaussian the phrase that claims it most confidently:
     labels.ply        the scene's PLY with an int32 ``label`` property holding the same
     <phrase>.ply      every Gaussian the phrase's selection holds (before overlaps are
                       resolved), for each phrase found; names as ``thgs export`` gives them
-    <phrase>.png      with cameras: the view that shows most of the phrase's selection
-                      (:func:`thgs.views.best_views`), the selection tinted, the rest dimmed,
-                      for each phrase found and seen in some view
+    <phrase>.png      with cameras: the view (of :data:`PICTURE_VIEWS` spread over them)
+                      that shows most of the phrase's selection
+                      (:func:`thgs.views.best_views`), beside the same with the selection
+                      tinted, for each phrase found and seen in one of them
     catalog.json      the phrase table: index, phrase, what was selected, confidences,
                       Gaussians selected and kept, the PLY, or why nothing was found
     catalog.md        the same as a table
@@ -231,30 +232,59 @@ def _picture_views(
     found: list[CatalogEntry],
     raster: RasterConfig,
 ) -> dict[int, int]:
-    """Phrase index → the view that shows most of its selection, for those some view shows."""
+    """Phrase index → the view (of :data:`PICTURE_VIEWS` spread over ``cameras``) that shows
+    most of its selection, for those one of them shows."""
     from thgs.views import best_views
 
     if cameras is None or not found:
         return {}
+    candidates = np.unique(np.linspace(0, len(cameras) - 1, PICTURE_VIEWS).round().astype(int))
     selected = np.stack([entry.selection.gaussians for entry in found], axis=1)
-    views = best_views(gaussians, cameras, selected, config=raster)
-    return {entry.index: int(view) for entry, view in zip(found, views.tolist()) if view >= 0}
+    views = best_views(
+        gaussians,
+        cameras.select(candidates.tolist()),
+        selected,
+        scale=PICTURE_CHOICE_SCALE,
+        config=raster,
+    )
+    return {
+        entry.index: int(candidates[view])
+        for entry, view in zip(found, views.tolist())
+        if view >= 0
+    }
 
 
-def _picture(
+PICTURE_VIEWS = 12
+"""Pictures are drawn in the best of this many views, spread evenly over the scene's cameras
+(which also bounds the renders: at most two per view)."""
+
+PICTURE_CHOICE_SCALE = 0.25
+"""The views are compared on renders at this fraction of their size (the pictures are drawn
+at full size)."""
+
+
+def _pictures(
     gaussians: Gaussians,
     cameras: Cameras,
-    view: int,
-    entry: CatalogEntry,
+    views: dict[int, int],
+    entries: list[CatalogEntry],
     raster: RasterConfig,
-) -> np.ndarray:
-    """The phrase's selection tinted in view ``view``, beside the plain view: [H, 2W, 3]."""
+) -> dict[int, np.ndarray]:
+    """Phrase index → its picture, [H, 2W, 3] in [0, 1]: the view beside the same with the
+    selection tinted; one scene render and one render of every selection shown per view."""
     from thgs.views import highlighted, scene_image, selection_masks
 
-    camera = cameras.select([view])
-    photo, _ = scene_image(gaussians, camera, config=raster)
-    mask = selection_masks(gaussians, camera, entry.selection.gaussians, config=raster)
-    return np.concatenate([photo, highlighted(photo, mask)], axis=1)
+    pictures = {}
+    for view in sorted(set(views.values())):
+        shown = [entry for entry in entries if views.get(entry.index) == view]
+        camera = cameras.select([view])
+        photo, _ = scene_image(gaussians, camera, config=raster)
+        selected = np.stack([entry.selection.gaussians for entry in shown], axis=1)
+        masks = selection_masks(gaussians, camera, selected, config=raster)
+        for column, entry in enumerate(shown):
+            tinted = highlighted(photo, masks[..., column])
+            pictures[entry.index] = np.concatenate([photo, tinted], axis=1)
+    return pictures
 
 
 def write_catalog(
@@ -349,9 +379,11 @@ def write_catalog(
             for entry, path in zip(found, plys):
                 write_selection_ply(path, gaussians, entry.selection.gaussians)
             pictured = [entry for entry in found if entry.index in pictures]
-            for entry, path in zip(pictured, pngs):
+            if pictured:
                 assert cameras is not None
-                write_map_png(path, _picture(gaussians, cameras, views[entry.index], entry, raster))
+                images = _pictures(gaussians, cameras, views, pictured, raster)
+                for entry, path in zip(pictured, pngs):
+                    write_map_png(path, images[entry.index])
     except BaseException:
         if created:
             with contextlib.suppress(OSError):  # only if nothing else was put there

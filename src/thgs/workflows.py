@@ -589,7 +589,8 @@ class CatalogRequest:
         scene: the scene the field was built on, if not where the field records.
         text_model: the text model's folder, instead of the one the field records.
         pictures: picture each phrase found in the view of the field's scene that shows most
-            of it (``<phrase>.png``); a scene without cameras gets none.
+            of it (``<phrase>.png``; a scene without cameras gets none). Rendering costs more
+            than the rest of the catalog on a CPU.
     """
 
     field: Path
@@ -598,7 +599,7 @@ class CatalogRequest:
     query: QueryConfig = QueryConfig()
     scene: Path | None = None
     text_model: Path | None = None
-    pictures: bool = True
+    pictures: bool = False
 
 
 @dataclass(frozen=True)

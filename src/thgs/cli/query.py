@@ -317,7 +317,7 @@ def catalog(
     min_gaussians: int | None = None,
     scene: Path | None = None,
     text_model: Path | None = None,
-    pictures: bool = True,
+    pictures: bool = False,
     verbose: bool = False,
 ) -> None:
     """Answer a whole vocabulary in one pass: one label per Gaussian, one PLY per phrase found.
@@ -326,8 +326,8 @@ def catalog(
     Gaussian gets the phrase that claims it most confidently (ties: the smaller region, then
     the phrase listed first), -1 if none. Writes labels.npy (int32 [N], in the scene PLY's
     order), labels.ply (the scene with a label property), <phrase>.ply for each phrase found,
-    <phrase>.png (the view that shows most of it, the selection tinted), catalog.json and
-    catalog.md (what was found, confidences, why the others were not).
+    with --pictures <phrase>.png (the view that shows most of it, the selection tinted),
+    catalog.json and catalog.md (what was found, confidences, why the others were not).
 
     Args:
         field: the field file (thgs build).
@@ -341,8 +341,9 @@ def catalog(
         scene: the scene the field was built on, if not where the field says.
         text_model: the text model's local folder, instead of the one the field records (or,
             for a field that records none, the Hugging Face cache).
-        pictures: picture each phrase found in its best view; --no-pictures skips them
-            (rendering costs about as much as the rest of the catalog on a CPU).
+        pictures: also picture each phrase found in the best of 12 views of the field's scene
+            (<phrase>.png: the view beside the same with the selection tinted); rendering costs
+            more than the rest of the catalog on a CPU.
         verbose: log what is loaded.
     """
     from thgs.workflows import CatalogRequest, catalog_field_file, query_config
