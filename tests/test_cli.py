@@ -1065,7 +1065,7 @@ def test_ctrl_c_while_the_command_starts_is_an_interruption():
 def test_a_repeated_list_option_keeps_every_value():
     from thgs.cli import COMMANDS, joined_list_options, list_options
 
-    assert list_options(COMMANDS["build"]) == {"--set"}
+    assert list_options(COMMANDS["build"]) == {"--set", "--orbit-views", "--orbit-spheres"}
     assert list_options(COMMANDS["pick"]) == set()  # --pixel X Y has two values, always
     argv = ["build", "S", "--set", "a=1", "-o", "x", "--set", "b=2", "c=3", "--verbose"]
     assert joined_list_options(argv) == [

@@ -262,7 +262,7 @@ def test_cfg_args_pointing_nowhere(small_dataset, tmp_path, monkeypatch, capsys,
         + named
         + looked
         + "; pass --source with the training data folder that holds language_features/, or "
-        "--guidance"
+        "--guidance, or make guidance on renders of the splat with --from-splat"
     )
     assert not Path("f.thgs").exists()
 
@@ -273,7 +273,8 @@ def test_cfg_args_pointing_nowhere(small_dataset, tmp_path, monkeypatch, capsys,
         "error: output/teatime: no cameras; "
         + named
         + looked
-        + "; pass --source with COLMAP or transforms.json"
+        + "; pass --source with COLMAP or transforms.json, or build from the splat alone with "
+        "--from-splat"
     )
 
 

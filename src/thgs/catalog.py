@@ -52,6 +52,8 @@ from thgs.scene import Cameras, Gaussians, write_ply
 
 __all__ = [
     "CATALOG_FILES",
+    "PICTURE_CHOICE_SCALE",
+    "PICTURE_VIEWS",
     "Catalog",
     "CatalogEntry",
     "catalog_field",
