@@ -452,4 +452,13 @@ def test_cli_builds_from_the_splat_and_queries(small_dataset, tmp_path, capsys):
     assert record["placement"]["orbit_views"] == [8, 4] and record["views"] >= 12
     code, _, err = run_cli(["query", str(out), "mug", "-o", str(tmp_path / "q")], capsys)
     assert code == 0, err
+    # scored on the dataset's frames only with the dataset's cameras (--scene), and told so
+    report = tmp_path / "r.json"
+    code, _, err = run_cli(["eval", str(small_dataset), str(out), "-o", str(report)], capsys)
+    assert code != 0 and "virtual views" in err and "--scene" in " ".join(err.split())
+    assert not report.exists()
+    argv = ["eval", str(small_dataset), str(out), "-o", str(report), "--scene", str(small_dataset)]
+    code, _, err = run_cli(argv, capsys)
+    assert code == 0, err
+    assert json.loads(report.read_text())["results"]
     assert json.loads((tmp_path / "q" / "results.json").read_text())["queries"][0]["gaussians"] > 0

@@ -351,10 +351,22 @@ def evaluate_field_file(
     from thgs.field_scene import field_text_encoder, open_field_scene
     from thgs.pipeline import lifted_raster
     from thgs.query import FieldQuery
+    from thgs.splat_views import VIEWS_RECORD
 
     semantic, loaded = open_field_scene(request.field, request.scene, device=request.device)
     if not request.other_scene:
-        check_ground_truth_scene(request.dataset, loaded.cameras)
+        try:
+            check_ground_truth_scene(request.dataset, loaded.cameras)
+        except InputError as error:
+            views = loaded.source
+            if request.scene is None and views is not None and (views / VIEWS_RECORD).is_file():
+                raise InputError(
+                    request.dataset,
+                    f"the field was built from virtual views of its splat ({views}), not from "
+                    "the cameras of the benchmark's frames; pass --scene with the model folder "
+                    "or dataset those cameras belong to",
+                ) from error
+            raise
     encoder = field_text_encoder(semantic, request.field, request.text_model)
     engine = FieldQuery(semantic, encoder, source=str(request.field))
     if request.selection == "paper":
