@@ -14,7 +14,6 @@ from thgs.choices import Device, FieldPreset, ScenePreset
 from thgs.cli._console import StageBars, setup_logging, stage_progress, stdout
 from thgs.cli._outputs import check_output_file, check_output_folder
 from thgs.errors import InputError
-from thgs.text import LANGSPLAT_SPACE
 
 __all__ = ["build", "demo"]
 
@@ -37,55 +36,47 @@ def _counts_table(title: str, counts, timings: dict[str, float]) -> Table:
     return table
 
 
-def _flag(name: str) -> str:
-    return "--" + name.replace("_", "-")
+def _splat_options(**options) -> dict:
+    """The ``--from-splat`` options the user gave (None, False or an empty tuple: not given;
+    a 0 is given)."""
+    return {
+        name: value
+        for name, value in options.items()
+        if value is not None and value is not False and value != ()
+    }
 
 
-def _refuse_without_splat(**given: bool) -> None:
-    named = [_flag(name) for name, present in given.items() if present]
-    if named:
-        raise InputError(named[0], "applies only with --from-splat")
-
-
-def _guidance_source(
-    sam: str, clip: str, space: str | None, device: str, dtype: str, oracle: Path | None
-):
+def _guidance_source(given: dict, space: str | None, device: str, oracle: Path | None):
     from thgs.splat_views import ModelGuidance, OracleGuidance
 
+    models = {name: given[name] for name in ("sam", "clip", "dtype") if name in given}
     if oracle is None:
         from thgs.device import resolve_device
 
-        return ModelGuidance(
-            sam=sam, clip=clip, space=space, device=str(resolve_device(device)), dtype=dtype
-        )
-    changed = {
-        "--sam": sam != "facebook/sam-vit-huge",
-        "--clip": clip != LANGSPLAT_SPACE,
-        "--dtype": dtype != "float32",
-        "--space": space is not None,
-    }
-    clashing = [flag for flag, present in changed.items() if present]
+        return ModelGuidance(**models, space=space, device=str(resolve_device(device)))
+    clashing = [f"--{name}" for name in models] + (["--space"] if space is not None else [])
     if clashing:
         raise InputError("--oracle", f"makes its own guidance; leave out {', '.join(clashing)}")
     return OracleGuidance(oracle)
 
 
-def _splat_views_request(
-    out: Path,
-    *,
-    views: Path | None,
-    overwrite: bool,
-    model_cameras: bool,
-    orbit_views: tuple[int, ...],
-    orbit_spheres: tuple[float, ...],
-    close_views: int,
-    view_size: tuple[int, int],
-    guidance,
-):
+def _splat_views_request(out: Path, given: dict, guidance):
     from thgs.errors import settings_as_flags
     from thgs.splat_views import PlacementConfig, SplatViewsRequest, default_views_folder
 
-    width, height = view_size
+    settings = {}
+    if "view_size" in given:
+        settings["width"], settings["height"] = given["view_size"]
+    for flag, setting in (
+        ("orbit_views", "orbit_views"),
+        ("orbit_spheres", "core_percentiles"),
+        ("close_views", "close_views"),
+    ):
+        if flag in given:
+            settings[setting] = given[flag]
+    defaults = PlacementConfig()
+    orbit_views = settings.get("orbit_views", defaults.orbit_views)
+    orbit_spheres = settings.get("core_percentiles", defaults.core_percentiles)
     if len(orbit_views) != len(orbit_spheres):
         raise InputError(
             "--orbit-views",
@@ -99,19 +90,13 @@ def _splat_views_request(
         height="view_size",
         core_percentiles="orbit_spheres",
     ):
-        placement = PlacementConfig(
-            width=width,
-            height=height,
-            orbit_views=orbit_views,
-            core_percentiles=orbit_spheres,
-            close_views=close_views,
-        ).check()
+        placement = PlacementConfig(**settings)
     return SplatViewsRequest(
-        folder=views if views is not None else default_views_folder(out),
+        folder=given.get("views", default_views_folder(out)),
         guidance=guidance,
         placement=placement,
-        model_cameras=model_cameras,
-        overwrite=overwrite,
+        model_cameras="no_model_cameras" not in given,
+        overwrite="overwrite_views" in given,
     )
 
 
@@ -141,13 +126,13 @@ def build(
     views: Path | None = None,
     overwrite_views: bool = False,
     model_cameras: bool = True,
-    orbit_views: tuple[int, ...] = (30,),
-    orbit_spheres: tuple[float, ...] = (50.0,),
-    close_views: int = 12,
-    view_size: tuple[int, int] = (512, 384),
-    sam: str = "facebook/sam-vit-huge",
-    clip: str = LANGSPLAT_SPACE,
-    dtype: Literal["float32", "bfloat16", "float16"] = "float32",
+    orbit_views: tuple[int, ...] = (),
+    orbit_spheres: tuple[float, ...] = (),
+    close_views: int | None = None,
+    view_size: tuple[int, int] | None = None,
+    sam: str | None = None,
+    clip: str | None = None,
+    dtype: Literal["float32", "bfloat16", "float16"] | None = None,
     oracle: Path | None = None,
     verbose: bool = False,
 ) -> None:
@@ -214,17 +199,21 @@ def build(
             other settings.
         model_cameras: with --from-splat: start from the model's own cameras when it has
             them; --no-model-cameras always places the orbit.
-        orbit_views: with --from-splat: the number of orbit views, one count per orbit sphere.
+        orbit_views: with --from-splat: the number of orbit views, one count per orbit sphere
+            (default 30).
         orbit_spheres: with --from-splat: each orbit frames the sphere around the scene's centre
-            that holds this percentage of its opaque Gaussians (50: where the objects are; add
-            e.g. --orbit-spheres 50 90 --orbit-views 20 10 for a second, wider orbit).
+            that holds this percentage of its opaque Gaussians (default 50: where the objects
+            are; e.g. --orbit-spheres 50 90 --orbit-views 20 10 adds a second, wider orbit).
         close_views: with --from-splat: at most this many close-ups of what the orbit leaves
-            unseen.
-        view_size: with --from-splat: width and height of the virtual views in pixels.
+            unseen (default 12).
+        view_size: with --from-splat: width and height of the virtual views in pixels (default
+            512 384).
         sam: with --from-splat: SAM or SAM 2 (a local folder or a cached Hugging Face id), as
-            in thgs preprocess.
-        clip: with --from-splat: the CLIP model, likewise.
-        dtype: with --from-splat: the models' precision (bfloat16 or float16 on a GPU).
+            in thgs preprocess (default facebook/sam-vit-huge).
+        clip: with --from-splat: the CLIP model, likewise (default LangSplat's OpenCLIP
+            ViT-B/16).
+        dtype: with --from-splat: the models' precision (default float32; bfloat16 or float16
+            on a GPU).
         oracle: with --from-splat, for a scene thgs synth wrote: make the guidance from this
             dataset folder's exact ground truth with its own oracle settings instead of SAM
             and CLIP (to score the splat-only path against exact answers).
@@ -238,33 +227,27 @@ def build(
     check_output_file(out)
     if threads is not None:
         set_cpu_threads(threads, "--threads")
+    given = _splat_options(
+        views=views,
+        overwrite_views=overwrite_views,
+        no_model_cameras=not model_cameras,
+        orbit_views=orbit_views,
+        orbit_spheres=orbit_spheres,
+        close_views=close_views,
+        view_size=view_size,
+        sam=sam,
+        clip=clip,
+        dtype=dtype,
+        oracle=oracle,
+    )
     splat_views = None
     if from_splat:
         splat_views = _splat_views_request(
-            out,
-            views=views,
-            overwrite=overwrite_views,
-            model_cameras=model_cameras,
-            orbit_views=orbit_views,
-            orbit_spheres=orbit_spheres,
-            close_views=close_views,
-            view_size=view_size,
-            guidance=_guidance_source(sam, clip, space, device, dtype, oracle),
+            out, given, _guidance_source(given, space, device, oracle)
         )
-    else:
-        _refuse_without_splat(
-            views=views is not None,
-            overwrite_views=overwrite_views,
-            no_model_cameras=not model_cameras,
-            orbit_views=orbit_views != (30,),
-            orbit_spheres=orbit_spheres != (50.0,),
-            close_views=close_views != 12,
-            view_size=view_size != (512, 384),
-            sam=sam != "facebook/sam-vit-huge",
-            clip=clip != LANGSPLAT_SPACE,
-            dtype=dtype != "float32",
-            oracle=oracle is not None,
-        )
+    elif given:
+        flag = "--" + next(iter(given)).replace("_", "-")
+        raise InputError(flag, "applies only with --from-splat")
     settings = chosen_field_config(
         preset,
         read_field_config(config) if config is not None else None,

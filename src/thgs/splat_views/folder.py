@@ -22,7 +22,7 @@ import logging
 import os
 import shutil
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -113,14 +113,13 @@ def _read_record(path: Path) -> dict | None:
 
 
 def _differences(found: dict, wanted: dict) -> list[str]:
-    keys = ("fingerprint", "placement", "model_cameras")
-    return [
-        {"fingerprint": "another scene", "placement": "other placement settings"}.get(
-            key, "model cameras" if wanted[key] else "no model cameras"
-        )
-        for key in keys
-        if found.get(key) != wanted[key]
-    ]
+    """What the folder's record says it was made for, where that is not what is wanted."""
+    made_for = {
+        "fingerprint": "another scene",
+        "placement": "other placement settings",
+        "model_cameras": "model cameras" if found.get("model_cameras") else "no model cameras",
+    }
+    return [reason for key, reason in made_for.items() if found.get(key) != wanted[key]]
 
 
 def _read_cameras(path: Path, record: dict) -> Cameras:
@@ -190,13 +189,7 @@ def open_views_folder(
         progress=progress,
     )
     cameras = placement.cameras
-    files = Cameras(
-        cameras.viewmats,
-        cameras.Ks,
-        cameras.widths,
-        cameras.heights,
-        tuple(f"{stem}.jpg" for stem in cameras.stems),
-    )
+    files = replace(cameras, names=tuple(f"{stem}.jpg" for stem in cameras.stems))
     path.mkdir(parents=True, exist_ok=True)
     write_colmap(path / "sparse" / "0", files)
     record = {

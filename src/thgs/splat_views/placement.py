@@ -33,7 +33,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -104,8 +104,12 @@ class PlacementConfig:
     min_gain: int = 20
     seed: int = 0
 
+    def __post_init__(self) -> None:
+        self.check()
+
     def check(self) -> PlacementConfig:
-        """Raise :class:`InputError` naming the setting that is out of range; returns self."""
+        """Raise :class:`InputError` naming the setting that is out of range; returns self
+        (run when the config is made)."""
         checks = {
             "width": self.width >= 16,
             "height": self.height >= 16,
@@ -440,7 +444,7 @@ def _concat(first: Cameras, second: Cameras) -> Cameras:
 
 def _model_base(cameras: Cameras, max_width: int) -> Cameras:
     """The model's cameras as pinholes at most ``max_width`` wide (renders need no lens)."""
-    plain = Cameras(cameras.viewmats, cameras.Ks, cameras.widths, cameras.heights, cameras.names)
+    plain = replace(cameras, distortion=None)
     widest = int(plain.widths.max())
     if widest <= max_width:
         return plain
@@ -467,7 +471,6 @@ def place_cameras(
         InputError: naming ``source``, for a scene without usable Gaussians or too degenerate
             to place cameras around (:func:`scene_frame`), or a setting out of range.
     """
-    config.check()
     frame = scene_frame(gaussians, config, cameras=model_cameras, source=source)
     if model_cameras is not None:
         base = _model_base(model_cameras, config.max_width)
