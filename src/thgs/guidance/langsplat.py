@@ -21,6 +21,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -137,11 +138,18 @@ def _paths(folder: Path, stem: str) -> tuple[Path, Path]:
     return folder / f"{stem}_s.npy", folder / f"{stem}_f.npy"
 
 
+_NPY_HEADER_LOCK = threading.Lock()
+"""NumPy parses a .npy header with ``ast.literal_eval``, which CPython's AST constructor can
+fail on when threads call it at once ("AST constructor recursion depth mismatch", CPython
+gh-106905); the lift's threads read guidance files lazily, so reads take turns."""
+
+
 def _load(path: Path) -> np.ndarray:
     if not path.is_file():
         raise InputError(path, "no such file")
     try:
-        return np.load(path, allow_pickle=False)
+        with _NPY_HEADER_LOCK:
+            return np.load(path, allow_pickle=False)
     except Exception as exc:  # numpy's header parser raises ValueError, SyntaxError, TokenError…
         raise InputError(path, f"not a readable .npy file ({exc})") from exc
 
