@@ -93,7 +93,9 @@ def synthetic_views(
     return out
 
 
-def run_one(n: int, views: int, visibility: float, alternatives: int, polish: bool) -> dict:
+def run_one(
+    n: int, views: int, visibility: float, alternatives: int, polish: bool, coarsen: int
+) -> dict:
     gaussians, segments = surface_scene(n)
     lifts = synthetic_views(segments, views, visibility)
     tiny = knn_graph(gaussians.select(np.arange(1000)))
@@ -109,7 +111,7 @@ def run_one(n: int, views: int, visibility: float, alternatives: int, polish: bo
     distances = reweight(graph, pos, neg, ReweightConfig())
     timings["reweight_s"] = time.perf_counter() - start
     start = time.perf_counter()
-    config = PartitionConfig(split_alternatives=alternatives, polish=polish)
+    config = PartitionConfig(split_alternatives=alternatives, polish=polish, coarsen_levels=coarsen)
     labels = partition(gaussians, graph, distances, config)
     timings["partition_s"] = time.perf_counter() - start
     return {
@@ -118,6 +120,7 @@ def run_one(n: int, views: int, visibility: float, alternatives: int, polish: bo
         "visibility": visibility,
         "split_alternatives": alternatives,
         "polish": polish,
+        "coarsen_levels": coarsen,
         "threads": torch.get_num_threads(),
         **{key: round(value, 2) for key, value in timings.items()},
         "total_s": round(sum(timings.values()), 2),
@@ -142,6 +145,12 @@ def main() -> None:
     parser.add_argument(
         "--no-polish", action="store_true", help="keep the solver's superpoints (the reference)"
     )
+    parser.add_argument(
+        "--coarsen-levels",
+        type=int,
+        default=PartitionConfig().coarsen_levels,
+        help="passes of heavy-edge matching before the solver (0: every Gaussian)",
+    )
     parser.add_argument("--one", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.one:
@@ -151,6 +160,7 @@ def main() -> None:
             args.visibility,
             args.split_alternatives,
             not args.no_polish,
+            args.coarsen_levels,
         )
         print(json.dumps(result))
         return
@@ -168,6 +178,8 @@ def main() -> None:
             "--split-alternatives",
             str(args.split_alternatives),
             *(["--no-polish"] if args.no_polish else []),
+            "--coarsen-levels",
+            str(args.coarsen_levels),
         ]
         result = subprocess.run(command, capture_output=True, text=True, check=True)
         print(result.stdout.strip(), flush=True)

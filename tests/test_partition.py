@@ -16,7 +16,9 @@ from thgs.errors import InputError, ThgsError
 from thgs.eval import purity
 from thgs.graph import GraphConfig, KnnGraph, PartitionConfig, knn_graph, partition
 from thgs.graph.partition import (
+    ATOM_TOLERANCE,
     _blocks,
+    _coarsened,
     _connected,
     _edge_weights,
     _features,
@@ -226,11 +228,16 @@ def test_presets_and_config_checks():
     assert lerf.split_alternatives == 6
     assert SuperpointConfig().as_reference().partition.split_alternatives == 2
     assert lerf.polish and not SuperpointConfig().as_reference().partition.polish
+    assert lerf.coarsen_levels == 0
+    coarsened = SuperpointConfig(partition=PartitionConfig(coarsen_levels=2))
+    assert coarsened.as_reference().partition.coarsen_levels == 0
     bad_settings = (
         {"regularization": -1.0},
         {"split_damp_ratio": 0.0},
         {"cp_it_max": 0},
         {"split_alternatives": 1},
+        {"coarsen_levels": -1},
+        {"coarsen_levels": 9},
     )
     for bad in bad_settings:
         with pytest.raises(InputError):
@@ -465,3 +472,129 @@ def test_a_failing_solver_process_is_named(monkeypatch):
     )
     with pytest.raises(ThgsError, match=r"solver process .* exit code 1: the solver ran out of"):
         partition(gaussians, graph, graph.distances, PartitionConfig(block_size=1000), workers=2)
+
+
+def pieces_of(labels: np.ndarray, graph: KnnGraph) -> int:
+    """Connected pieces of the KNN graph's edges that stay inside a superpoint."""
+    valid = graph.valid()
+    rows = np.repeat(np.arange(len(graph)), valid.sum(axis=1))
+    columns = graph.neighbors[valid]
+    inside = labels[rows] == labels[columns]
+    n = len(graph)
+    adjacency = coo_matrix((np.ones(inside.sum()), (rows[inside], columns[inside])), (n, n))
+    return connected_components(adjacency, directed=False)[0]
+
+
+def _plane_task(n: int = 2000, seed: int = 4):
+    """One piece's task on a noisy two-colour plane: features [n, 9], edges ``sources <
+    targets``, weights, and a joinable mask with every tenth edge made lighter by votes."""
+    generator = np.random.default_rng(seed)
+    gaussians = noisy_plane(n=n, seed=seed)
+    graph = knn_graph(gaussians)
+    config = PartitionConfig()
+    first_edge, targets, weights = _edge_weights(
+        graph, graph.distances, gaussians.means.numpy(), graph.distances
+    )
+    sources = np.repeat(np.arange(n), np.diff(first_edge))
+    joinable = generator.random(sources.size) > 0.1
+    return _features(gaussians, config).astype(np.float64), sources, targets, weights, joinable
+
+
+def test_atoms_keep_the_energy_of_every_partition_that_keeps_them_whole():
+    features, sources, targets, weights, joinable = _plane_task()
+    config = PartitionConfig(coarsen_levels=3)
+    atom, (atom_features, atom_sources, atom_targets, atom_weights, sizes) = _coarsened(
+        features, sources, targets, weights, joinable, config
+    )
+    n, count = len(features), int(atom.max()) + 1
+    assert count < 0.7 * n  # three passes joined many Gaussians
+    # atoms: numbered by their first Gaussian, at most 2³ Gaussians, sizes as counted
+    first = np.unique(atom, return_index=True)[1]
+    assert first[0] == 0 and (np.diff(first) > 0).all()
+    np.testing.assert_array_equal(sizes, np.bincount(atom))
+    assert sizes.max() <= 8
+    # each atom is connected through joinable edges, never across an edge the votes lightened
+    same = atom[sources] == atom[targets]
+    inside = joinable & same
+    graph = coo_matrix((np.ones(inside.sum()), (sources[inside], targets[inside])), (n, n))
+    connected = connected_components(graph, directed=False)[1]
+    for a in range(count):
+        assert len(np.unique(connected[atom == a])) == 1
+    # each atom's feature is its Gaussians' mean; coarse edges sum the fine ones between atoms
+    np.testing.assert_allclose(
+        atom_features, np.stack([features[atom == a].mean(axis=0) for a in range(count)]), 1e-5
+    )
+    assert np.all(atom_sources < atom_targets)
+    pairs = {}
+    for u, v, w in zip(atom[sources][~same], atom[targets][~same], weights[~same]):
+        key = (min(u, v), max(u, v))
+        pairs[key] = pairs.get(key, 0.0) + w
+    assert sorted(pairs) == list(zip(atom_sources.tolist(), atom_targets.tolist()))
+    np.testing.assert_allclose(atom_weights, [pairs[key] for key in sorted(pairs)])
+    # any partition of the atoms: the weighted energy on atoms plus the atoms' own scatter is
+    # the energy of the same partition of the Gaussians
+    scatter = sum(
+        float(((features[atom == a] - features[atom == a].mean(axis=0)) ** 2).sum())
+        for a in range(count)
+    )
+    generator = np.random.default_rng(0)
+    for parts in (1, 3, 40):
+        coarse = generator.integers(0, parts, count)
+        means = np.stack(
+            [
+                np.average(atom_features[coarse == c], axis=0, weights=sizes[coarse == c])
+                if (coarse == c).any()
+                else np.zeros(features.shape[1])
+                for c in range(parts)
+            ]
+        )
+        on_atoms = float((sizes[:, None] * (atom_features - means[coarse]) ** 2).sum())
+        on_atoms += 0.1 * float(atom_weights[coarse[atom_sources] != coarse[atom_targets]].sum())
+        fine = brute_energy(features, coarse[atom], sources, targets, weights, 0.1)
+        assert on_atoms + scatter == pytest.approx(fine, rel=1e-4)
+
+
+def test_a_match_raises_the_data_term_by_at_most_its_share_of_the_cut():
+    features, sources, targets, weights, joinable = _plane_task(seed=5)
+    atom, _ = _coarsened(
+        features, sources, targets, weights, joinable, PartitionConfig(coarsen_levels=1)
+    )
+    sizes = np.bincount(atom)
+    assert set(sizes.tolist()) == {1, 2}  # one pass: pairs and singles
+    pairs = np.flatnonzero(sizes == 2)
+    assert len(pairs) > 0.3 * len(features) / 2
+    edge_of = {(int(u), int(v)): e for e, (u, v) in enumerate(zip(sources, targets))}
+    for a in pairs:
+        u, v = np.flatnonzero(atom == a)
+        e = edge_of[(u, v)]
+        assert joinable[e]
+        raised = 0.5 * float(((features[u] - features[v]) ** 2).sum())
+        assert raised <= ATOM_TOLERANCE * 0.1 * weights[e] + 1e-12
+    # a singleton had no free neighbour it could join: every neighbour it had is matched, or
+    # too far in the features, or across an edge the votes lightened
+    first = {int(u): [] for u in range(len(features))}
+    for e, (u, v) in enumerate(zip(sources, targets)):
+        first[int(u)].append((int(v), e))
+        first[int(v)].append((int(u), e))
+    for a in np.flatnonzero(sizes == 1)[:200]:
+        (u,) = np.flatnonzero(atom == a)
+        for v, e in first[int(u)]:
+            raised = 0.5 * float(((features[u] - features[v]) ** 2).sum())
+            free = sizes[atom[v]] == 1
+            assert not (free and joinable[e] and raised <= ATOM_TOLERANCE * 0.1 * weights[e])
+
+
+def test_coarsened_partitions_cut_where_the_gaussians_do_and_the_same_with_any_workers():
+    gaussians, truth = blobs([[0, 0, 0], [0.8, 0, 0]], [RED, BLUE], 1500, 0.3, seed=1)
+    graph = knn_graph(gaussians)
+    config = PartitionConfig(block_size=1000, coarsen_levels=2)
+    labels = partition(gaussians, graph, graph.distances, config, workers=1)
+    np.testing.assert_array_equal(labels, truth)
+    plane = noisy_plane(n=6000, seed=3)
+    graph = knn_graph(plane)
+    one = partition(plane, graph, graph.distances, config, workers=1)
+    np.testing.assert_array_equal(partition(plane, graph, graph.distances, config, workers=2), one)
+    assert pieces_of(one, graph) == one.max() + 1  # every superpoint connected
+    # close to the energy of the solver on every Gaussian
+    fine = partition(plane, graph, graph.distances, replace(config, coarsen_levels=0))
+    assert objective(plane, graph, one, config) < 1.05 * objective(plane, graph, fine, config)

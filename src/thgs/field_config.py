@@ -76,14 +76,19 @@ class SuperpointConfig:
     def as_reference(self) -> SuperpointConfig:
         """The same numbers with the authors' behaviour where ours differs: absolute vote
         offsets (0.1 / 0.02 scene units²), edge weights against the reweighted mean, the
-        solver's 2 split alternatives, the solver's superpoints unpolished."""
+        solver's 2 split alternatives on the Gaussians themselves, the solver's superpoints
+        unpolished."""
         return replace(
             self,
             reweight=replace(
                 self.reweight, mode="absolute", negative_offset=0.1, positive_offset=0.02
             ),
             partition=replace(
-                self.partition, weight_scale="reweighted", split_alternatives=2, polish=False
+                self.partition,
+                weight_scale="reweighted",
+                split_alternatives=2,
+                polish=False,
+                coarsen_levels=0,
             ),
         )
 
@@ -226,6 +231,7 @@ _BEFORE_RECORDED = {
     ("superpoints", "partition", "polish"): False,
     ("features", "median_steps"): 0,
     ("superpoints", "partition", "block_size"): 0,
+    ("superpoints", "partition", "coarsen_levels"): 0,
 }
 """Settings added after fields were first recorded, with the value every earlier build used."""
 
