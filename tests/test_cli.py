@@ -900,7 +900,7 @@ def test_ctrl_c_during_bench_leaves_no_report_and_no_half_dataset(
     """Ctrl-C while bench generates its synthetic dataset (after the first view is written) or
     builds a variant: exit 130, one error line, no report, and the cache holds the whole dataset
     or none of it."""
-    import thgs.bench
+    import thgs.bench.run
     import thgs.synthetic.dataset
     from thgs.synthetic.cache import open_synthetic_dataset
     from thgs.text import MINILM_SPACE, load_text_encoder
@@ -919,7 +919,7 @@ def test_ctrl_c_during_bench_leaves_no_report_and_no_half_dataset(
     if stage == "generate":
         monkeypatch.setattr(thgs.synthetic.dataset, "oracle_guidance", second_view_interrupted)
     else:
-        monkeypatch.setattr(thgs.bench, "build_levels", interrupted)
+        monkeypatch.setattr(thgs.bench.run, "build_levels", interrupted)
     out, cache = tmp_path / "out", tmp_path / "cache"
     argv = ["bench", "-o", str(out), "--presets", "synth-small", "--gaussians", "2000"]
     argv += ["--views", "4", "--stand-ins", "name-perfect", "--variants", "full"]
