@@ -345,9 +345,7 @@ class LevelMasks:
 
     def compact(self) -> LevelMasks:
         """Drop masks with no pixels left and renumber the rest in order."""
-        present = np.zeros(len(self.names) + 1, dtype=bool)
-        present[np.unique(self.ids) + 1] = True
-        keep = present[1:]
+        keep = np.bincount(self.ids.ravel() + 1, minlength=len(self.names) + 1)[1:] > 0
         new_index = np.full(len(self.names) + 1, -1, dtype=np.int32)
         new_index[1:][keep] = np.arange(int(keep.sum()), dtype=np.int32)
         names = tuple(name for name, kept in zip(self.names, keep) if kept)
