@@ -584,6 +584,7 @@ def test_a_match_raises_the_data_term_by_at_most_its_share_of_the_cut():
             assert not (free and joinable[e] and raised <= ATOM_TOLERANCE * 0.1 * weights[e])
 
 
+@pytest.mark.slow
 def test_coarsened_partitions_cut_where_the_gaussians_do_and_the_same_with_any_workers():
     gaussians, truth = blobs([[0, 0, 0], [0.8, 0, 0]], [RED, BLUE], 1500, 0.3, seed=1)
     graph = knn_graph(gaussians)
