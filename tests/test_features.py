@@ -659,3 +659,29 @@ def test_bad_input_is_named(known_centres):
             gaussians=case.gaussians,
             cameras=case.cameras,
         )
+
+
+@pytest.mark.slow
+def test_a_folder_read_lazily_gives_the_same_features_reading_only_their_files(
+    small_dataset, monkeypatch
+):
+    """The shares read each view's mask features alone from a lazily read folder (not its
+    masks): the same features as from the views held in memory, at every level."""
+    from thgs import load_scene
+    from thgs.guidance import load_guidance
+    from thgs.pipeline import lift_scene
+
+    scene = load_scene(small_dataset)
+    folder = small_dataset / "language_features"
+    eager = load_guidance(folder, scene.cameras)
+    lazy = load_guidance(folder, scene.cameras, lazy=True)
+    lifted = lift_scene(scene, eager, LiftConfig()).lifted
+    labels = np.stack([np.arange(len(scene.gaussians)) % k for k in (29, 11, 5)], axis=1)
+    expected = level_features(labels, (1, 2, 3), lifted, eager)
+    monkeypatch.setattr(type(lazy), "__getitem__", lambda *args: pytest.fail("the masks were read"))
+    for (features, seen), (want, want_seen) in zip(
+        level_features(labels, (1, 2, 3), lifted, lazy), expected, strict=True
+    ):
+        np.testing.assert_array_equal(features, want)
+        np.testing.assert_array_equal(seen, want_seen)
+        assert seen.all()

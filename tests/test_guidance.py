@@ -184,7 +184,21 @@ def test_lazy_guidance_reads_the_same_views_on_access(tmp_path):
                 assert x.stem == y.stem
                 np.testing.assert_array_equal(x.segments, y.segments)
                 np.testing.assert_array_equal(x.features, y.features)
+        for i, view in enumerate(eager):  # the features alone, without the masks
+            got = lazy.features(i)
+            assert got.dtype == np.float32 and got.shape == view.features.shape
+            np.testing.assert_array_equal(got, view.features)
+        np.testing.assert_array_equal(lazy.features(-1), eager[-1].features)
         assert lazy[-1].stem == eager[-1].stem
+    # a features file damaged after loading is named when its features are read
+    lazy = load_guidance(tmp_path, cameras_for(["a", "b"], 3, 2), lazy=True)
+    damaged = features(8, seed=1)
+    damaged[3, 0] = np.nan
+    np.save(tmp_path / "a_f.npy", damaged)
+    with pytest.raises(InputError, match=r"a_f\.npy: features have NaN or infinite values in 1 of "
+                       r"8 rows \(first: row 3\)"):  # fmt: skip
+        lazy.features(0)
+    langsplat_files(tmp_path, "a", example_levels(), features(8, seed=1))
     with pytest.raises(InputError, match=r"masks are 3×2 but the camera is 6×4"):
         load_guidance(tmp_path, cameras_for(["a"], 6, 4), lazy=True)
     langsplat_files(tmp_path, "d", example_levels(), features(8, d=5))

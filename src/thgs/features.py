@@ -48,7 +48,7 @@ import torch
 from torch import Tensor
 
 from thgs.errors import InputError
-from thgs.guidance import LEVELS, ViewGuidance
+from thgs.guidance import LEVELS, GuidanceFolder, ViewGuidance
 from thgs.lift import ViewLift
 from thgs.scene import Cameras, Gaussians
 
@@ -225,25 +225,30 @@ def _check_views(
     if not guidance:
         raise InputError("guidance", "no views: the feature dimension is unknown")
     dims = set()
-    for i, (view, masks) in enumerate(zip(lifted, guidance)):
+    for i, view in enumerate(lifted):
         view.check(count, source=f"lifted view {i}")
         if view.device != lifted[0].device:
             raise InputError(
                 f"lifted view {i}", f"is on {view.device}, view 0 on {lifted[0].device}"
             )
-        if masks.features.ndim != 2 or masks.segments.ndim != 3 or masks.segments.shape[0] != 4:
-            raise InputError(
-                f"guidance {masks.stem}", "segments must be [4, H, W] and features [n, D]"
-            )
-        dims.add(int(masks.features.shape[1]))
+        if isinstance(guidance, GuidanceFolder):  # every view was checked when it was found
+            stem, features = guidance.cameras.stems[i], guidance.features(i)
+        else:
+            masks = guidance[i]
+            stem, features = masks.stem, masks.features
+            if features.ndim != 2 or masks.segments.ndim != 3 or masks.segments.shape[0] != 4:
+                raise InputError(
+                    f"guidance {stem}", "segments must be [4, H, W] and features [n, D]"
+                )
+        dims.add(int(features.shape[1]))
         column = view.labels[:, level]
         if len(column):
             low, high = int(column.min()), int(column.max())
-            if low < -1 or high >= len(masks.features):
+            if low < -1 or high >= len(features):
                 raise InputError(
                     f"lifted view {i}",
                     f"level-{LEVELS[level]} mask ids range over [{low}, {high}] but "
-                    f"guidance {masks.stem} has {len(masks.features)} feature rows",
+                    f"guidance {stem} has {len(features)} feature rows",
                 )
     if len(dims) != 1:
         raise InputError("guidance", f"views disagree on the feature dimension: {sorted(dims)}")
@@ -411,15 +416,25 @@ def _pool_views(
 ) -> None:
     """One pass over the views, adding each view's unit vectors into ``levels``' sums."""
     device = lifted[0].device
-    for i, (view, masks) in enumerate(zip(lifted, guidance)):
-        if len(view) == 0 or len(masks.features) == 0:
+    for i, view in enumerate(lifted):
+        if len(view) == 0:
+            continue
+        # the shares need only the masks' features: a folder read lazily gives them alone
+        masks = guidance[i] if config.mode == "centres" else None
+        if masks is not None:
+            view_features = masks.features
+        elif isinstance(guidance, GuidanceFolder):
+            view_features = guidance.features(i)
+        else:
+            view_features = guidance[i].features
+        if len(view_features) == 0:
             continue
         seen, max_weights, view_labels = view.gaussians.long(), view.max_weights, view.labels
         if inside is not None:
             keep = inside[seen]
             seen, max_weights, view_labels = seen[keep], max_weights[keep], view_labels[keep]
-        features = torch.from_numpy(masks.features).to(device=device, dtype=torch.float64)
-        if config.mode == "shares":
+        features = torch.from_numpy(view_features).to(device=device, dtype=torch.float64)
+        if masks is None:
             _shares_view(levels, seen, max_weights, view_labels, features, config)
         else:
             segments = torch.from_numpy(masks.segments).to(device)
