@@ -214,6 +214,14 @@ def _check_labels(labels: np.ndarray, regions: int | None) -> tuple[np.ndarray, 
     return labels.astype(np.int64), int(regions)
 
 
+def _view_features(guidance: Sequence[ViewGuidance], i: int) -> tuple[str, np.ndarray]:
+    """View ``i``'s stem and [n, D] mask features; from a folder read lazily, its feature file
+    alone (its masks are not read)."""
+    if isinstance(guidance, GuidanceFolder):
+        return guidance.cameras.stems[i], guidance.features(i)
+    return guidance[i].stem, guidance[i].features
+
+
 def _check_views(
     lifted: Sequence[ViewLift], guidance: Sequence[ViewGuidance], count: int, level: int
 ) -> int:
@@ -231,12 +239,10 @@ def _check_views(
             raise InputError(
                 f"lifted view {i}", f"is on {view.device}, view 0 on {lifted[0].device}"
             )
-        if isinstance(guidance, GuidanceFolder):  # every view was checked when it was found
-            stem, features = guidance.cameras.stems[i], guidance.features(i)
-        else:
-            masks = guidance[i]
-            stem, features = masks.stem, masks.features
-            if features.ndim != 2 or masks.segments.ndim != 3 or masks.segments.shape[0] != 4:
+        stem, features = _view_features(guidance, i)
+        if not isinstance(guidance, GuidanceFolder):  # a folder's views were checked when found
+            segments = guidance[i].segments
+            if features.ndim != 2 or segments.ndim != 3 or segments.shape[0] != 4:
                 raise InputError(
                     f"guidance {stem}", "segments must be [4, H, W] and features [n, D]"
                 )
@@ -419,14 +425,8 @@ def _pool_views(
     for i, view in enumerate(lifted):
         if len(view) == 0:
             continue
-        # the shares need only the masks' features: a folder read lazily gives them alone
         masks = guidance[i] if config.mode == "centres" else None
-        if masks is not None:
-            view_features = masks.features
-        elif isinstance(guidance, GuidanceFolder):
-            view_features = guidance.features(i)
-        else:
-            view_features = guidance[i].features
+        view_features = _view_features(guidance, i)[1] if masks is None else masks.features
         if len(view_features) == 0:
             continue
         seen, max_weights, view_labels = view.gaussians.long(), view.max_weights, view.labels

@@ -99,13 +99,7 @@ class ViewGuidance:
         if self.features.ndim != 2:
             raise InputError(source, f"features must be [n, D], got {list(self.features.shape)}")
         n = self.features.shape[0]
-        bad = ~np.isfinite(self.features).all(axis=1)
-        if bad.any():
-            raise InputError(
-                features_source or source,
-                f"features have NaN or infinite values in {int(bad.sum())} of {n} rows "
-                f"(first: row {int(np.flatnonzero(bad)[0])})",
-            )
+        _check_finite(self.features, features_source or source)
         low, high = int(self.segments.min()), int(self.segments.max())
         if low < -1:
             raise InputError(
@@ -195,14 +189,20 @@ def _checked_features(path: Path) -> np.ndarray:
             f"expected an [n, D] array of floats (one feature row per mask), got a "
             f"{features.ndim}-D {features.dtype} array of shape {list(features.shape)}",
         )
+    _check_finite(features, path)
+    return features.astype(np.float32, copy=False)
+
+
+def _check_finite(features: np.ndarray, source: str | os.PathLike[str]) -> None:
+    """Raise an :class:`InputError` naming ``source`` if a row of the [n, D] ``features`` holds
+    NaN or infinity."""
     bad = ~np.isfinite(features).all(axis=1)
     if bad.any():
         raise InputError(
-            path,
+            source,
             f"features have NaN or infinite values in {int(bad.sum())} of {len(features)} "
             f"rows (first: row {int(np.flatnonzero(bad)[0])})",
         )
-    return features.astype(np.float32, copy=False)
 
 
 def write_view_guidance(folder: str | os.PathLike[str], guidance: ViewGuidance) -> None:
