@@ -223,6 +223,29 @@ def test_tile_size_does_not_change_results(backend, tile_size):
     assert torch.equal(out.max_id, reference.max_id)
 
 
+@pytest.mark.parametrize("kind", ["2dgs", "3dgs"])
+@pytest.mark.parametrize("tile_size", [5, 64])
+def test_numba_render_is_the_same_with_any_number_of_threads(kind, tile_size):
+    """The numba render deals tiles to threads: the same bytes with one thread, with two, and
+    with more threads than tiles (one 64-pixel tile covers the whole 48×36 image)."""
+    numba = pytest.importorskip("numba")
+    gaussians = tiny_scene(kind, seed=5)
+    features = gaussians.dc_colors().double()
+    config = RasterConfig(tile_size=tile_size, backend="numba")
+    outputs = []
+    for threads in (1, numba.config.NUMBA_NUM_THREADS):
+        before = numba.get_num_threads()
+        numba.set_num_threads(threads)
+        try:
+            outputs.append(render(gaussians, camera(), features, config=config))
+        finally:
+            numba.set_num_threads(before)
+    one, many = outputs
+    for name in ("image", "alpha", "depth", "max_id"):
+        assert torch.equal(getattr(one, name), getattr(many, name)), name
+    assert int((one.max_id >= 0).sum()) > 100  # the scene covers much of the image
+
+
 def single(kind: str, *, z=5.0, scale=0.1, opacity=0.9, quat=(1.0, 0, 0, 0), xy=(0.0, 0.0)):
     n_scales = 2 if kind == "2dgs" else 3
     return Gaussians(

@@ -499,7 +499,10 @@ def _means(labels, features, count):  # pragma: no cover
             sums[labels[v], d] += features[v, d]
     for c in range(count):
         if sizes[c] > 0:
-            sums[c] /= sizes[c]
+            # element by element: an array operation compiles numba's shape-mismatch error
+            # path, seconds of a first run's compilation
+            for d in range(features.shape[1]):
+                sums[c, d] /= sizes[c]
     return sums
 
 

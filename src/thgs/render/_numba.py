@@ -13,10 +13,11 @@ Per view:
    would bring the transmittance to ≤ transmittance_min. Work and memory are bounded by
    (tile, Gaussian) pairs, never by (pixel, Gaussian) pairs.
 
-``render`` runs tiles in parallel (each pixel is written once). ``splat_back`` and
-``label_weights`` run one view serially, summing per tile before adding into the per-Gaussian
-results, so they are deterministic and independent of the thread count; :mod:`thgs.lift` runs
-several views at once instead, one per thread (the kernels release the GIL).
+``render`` deals the tiles round-robin to threads (each pixel is written by one tile).
+``splat_back`` and ``label_weights`` run one view serially, summing per tile before adding into
+the per-Gaussian results, so they are deterministic and independent of the thread count;
+:mod:`thgs.lift` runs several views at once instead, one per thread (the kernels release the
+GIL).
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from __future__ import annotations
 import math
 import threading
 import weakref
+from concurrent.futures import ThreadPoolExecutor
 
 import numba
 import numpy as np
@@ -47,7 +49,7 @@ _LOCAL_SLOTS_MAX = 1 << 22
 (very many distinct labels under many Gaussians) adds each pixel's weights directly instead."""
 
 
-@numba.njit(inline="always")
+@numba.njit(nogil=True, cache=True)
 def _bounds(center, half, size):
     """Inclusive pixel index range whose centres lie within ``center ± half``, widened by one."""
     low = math.ceil(center - half - 0.5) - 1.0
@@ -294,7 +296,7 @@ def _bin_tiles(depths, bounds, tile_size, tiles_x, tiles_y):  # pragma: no cover
     return pairs, start
 
 
-@numba.njit(inline="always")
+@numba.njit(nogil=True, cache=True)
 def _gather(pairs, first, last, view, local):  # pragma: no cover - compiled
     """Copy the tile's Gaussians (``pairs[first:last]``) into the contiguous ``local`` arrays."""
     alpha_centers, params, opacities, bounds, reaches = view
@@ -312,7 +314,7 @@ def _gather(pairs, first, last, view, local):  # pragma: no cover - compiled
         reach[j] = reaches[g]
 
 
-@numba.njit(inline="always")
+@numba.njit(nogil=True, cache=True)
 def _local_arrays(m):
     return (
         np.empty(m, dtype=np.int64),
@@ -324,7 +326,7 @@ def _local_arrays(m):
     )
 
 
-@numba.njit(inline="always")
+@numba.njit(nogil=True, cache=True)
 def _row_lists(m, y0, rows_in_tile, boxes, rows, row_counts):  # pragma: no cover - compiled
     """``rows[r, :row_counts[r]]``: the tile's Gaussians (in depth order) whose box spans pixel
     row ``y0 + r``."""
@@ -338,7 +340,7 @@ def _row_lists(m, y0, rows_in_tile, boxes, rows, row_counts):  # pragma: no cove
             row_counts[r] += 1
 
 
-@numba.njit(inline="always")
+@numba.njit(nogil=True, cache=True)
 def _surfel_span(ax, ay, az, bx, by, bz, center_x, filter_inv_square, filter_row, two_limit):
     """``(low, high)``: the x of a row where a 2DGS Gaussian's ρ can be ≤ ``two_limit`` (2σ at
     its reach); empty when low > high, unbounded when a side is infinite.
@@ -370,7 +372,7 @@ def _surfel_span(ax, ay, az, bx, by, bz, center_x, filter_inv_square, filter_row
     return low, high
 
 
-@numba.njit(inline="always")
+@numba.njit(nogil=True, cache=True)
 def _composite_row(
     py, x_low, x_high, row, count, kind, local, settings, transmittance, done, out
 ):  # pragma: no cover - compiled
@@ -480,7 +482,7 @@ def _composite_row(
     return composited
 
 
-@numba.njit(inline="always")
+@numba.njit(nogil=True, cache=True)
 def _tile_setup(pairs, first, last, view, tile, tiles_x, tile_size, width, height):
     """The tile's pixel rows ``y0 …`` and columns ``x0 … x1 − 1``, its local arrays, row lists,
     and buffers for one row's compositing."""
@@ -502,18 +504,30 @@ def _tile_setup(pairs, first, last, view, tile, tiles_x, tile_size, width, heigh
     return y0, x0, x1, rows_in_tile, local, rows, row_counts, out, transmittance, done
 
 
-@numba.njit(parallel=True, cache=True)
-def _render_kernel(
-    pairs, start, tiles_x, tile_size, width, height, kind, view, settings, depths, features
+@numba.njit(nogil=True, cache=True)
+def _render_tiles(
+    pairs,
+    start,
+    tiles_x,
+    tile_size,
+    width,
+    height,
+    kind,
+    view,
+    settings,
+    depths,
+    features,
+    first_tile,
+    step,
+    outputs,
 ):  # pragma: no cover - compiled
+    """Render the tiles ``first_tile, first_tile + step, …`` into ``outputs`` = (image [H, W, C],
+    alpha [H, W], depth [H, W], max_id [H, W], best weight [H, W]), which start zeroed (max_id
+    −1); every pixel belongs to one tile, so calls on disjoint tile sets can run at once."""
+    image, alpha, depth, max_id, best = outputs
     channels = features.shape[1]
-    image = np.zeros((height, width, channels))
-    alpha = np.zeros((height, width))
-    depth = np.zeros((height, width))
-    max_id = np.full((height, width), -1, dtype=np.int64)
-    best = np.zeros((height, width))
     tiles_y = (height + tile_size - 1) // tile_size
-    for tile in numba.prange(tiles_x * tiles_y):
+    for tile in range(first_tile, tiles_x * tiles_y, step):
         first, last = start[tile], start[tile + 1]
         if last == first:
             continue
@@ -538,7 +552,32 @@ def _render_kernel(
             for px in range(x0, x1):
                 if alpha[py, px] > 0.0:
                     depth[py, px] /= alpha[py, px]
-    return image, alpha, depth, max_id
+
+
+def _render_arrays(inputs: tuple, depths: np.ndarray, features: np.ndarray) -> tuple:
+    """(image [H, W, C], alpha, depth, max_id [H, W]) of :func:`_render_tiles` over every tile,
+    the tiles dealt round-robin to ``numba.get_num_threads()`` threads (the kernel releases the
+    GIL; each pixel is written by one thread, so the result does not depend on their number)."""
+    width, height = inputs[4], inputs[5]
+    outputs = (
+        np.zeros((height, width, features.shape[1])),
+        np.zeros((height, width)),
+        np.zeros((height, width)),
+        np.full((height, width), -1, dtype=np.int64),
+        np.zeros((height, width)),
+    )
+    tiles = max(len(inputs[1]) - 1, 1)
+    threads = max(1, min(numba.get_num_threads(), tiles))
+
+    def run(first_tile: int) -> None:
+        _render_tiles(*inputs, depths, features, first_tile, threads, outputs)
+
+    if threads == 1:
+        run(0)
+    else:
+        with ThreadPoolExecutor(max_workers=threads, thread_name_prefix="thgs-render") as pool:
+            list(pool.map(run, range(threads)))
+    return outputs[:4]
 
 
 @numba.njit(nogil=True, cache=True)
@@ -590,7 +629,7 @@ def _splat_back_kernel(
     return feature_sums, weight_sums, max_weights, pixel_counts
 
 
-@numba.njit(inline="always")
+@numba.njit(nogil=True, cache=True)
 def _add_tuple_weight(
     g, slot, weight, slot_labels, firsts, heads, node_label, node_weight, node_next, used
 ):  # pragma: no cover - compiled
@@ -637,9 +676,12 @@ def _grown(node_label, node_weight, node_next):  # pragma: no cover - compiled
     labels = np.empty(size, dtype=np.int64)
     weights = np.empty(size)
     links = np.empty(size, dtype=np.int64)
-    labels[:used] = node_label
-    weights[:used] = node_weight
-    links[:used] = node_next
+    # element by element: a slice assignment compiles numba's shape-mismatch error path,
+    # seconds of a first run's compilation
+    for i in range(used):
+        labels[i] = node_label[i]
+        weights[i] = node_weight[i]
+        links[i] = node_next[i]
     return labels, weights, links
 
 
@@ -887,7 +929,7 @@ class NumbaBackend:
     ) -> RenderOutput:
         arrays, inputs = _kernel_inputs(gaussians, camera, config)
         values = np.ascontiguousarray(features.cpu().double().numpy())
-        image, alpha, depth, max_id = _render_kernel(*inputs, arrays[0], values)
+        image, alpha, depth, max_id = _render_arrays(inputs, arrays[0], values)
         out_dtype = features.dtype
         return RenderOutput(
             image=torch.from_numpy(image).to(out_dtype),
