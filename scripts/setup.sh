@@ -6,10 +6,10 @@
 #
 # Steps: create the venv; install torch==2.13.0 first; pin it with scripts/constraints.txt in every
 # later pip call; install thgs (editable) with its extras, all from wheels (pycut-pursuit's wheel and
-# the NumPy it was built against come from pyproject.toml), without byte-compiling them
-# (--no-compile: Python compiles what it imports, on first import; torch alone installs in 5 s
-# instead of 19 s). torchvision is never installed, and the script fails if anything pulled it in.
-# Idempotent: a second run with unchanged inputs does nothing.
+# the NumPy it was built against come from pyproject.toml), byte-compiled: the tests start many
+# processes, and where PYTHONDONTWRITEBYTECODE is set (as on this project's machines) nothing
+# imported is ever cached otherwise. torchvision is never installed, and the script fails if
+# anything pulled it in. Idempotent: a second run with unchanged inputs does nothing.
 set -euo pipefail
 
 root=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
@@ -56,9 +56,9 @@ fi
 pip=("$venv/bin/python" -m pip --disable-pip-version-check)
 
 echo "setup: torch 2.13.0 (CPU build)"
-"${pip[@]}" install --quiet --no-compile torch==2.13.0
+"${pip[@]}" install --quiet torch==2.13.0
 echo "setup: thgs[$extras]"
-"${pip[@]}" install --quiet --no-compile -c "$constraints" -e "$root[$extras]"
+"${pip[@]}" install --quiet -c "$constraints" -e "$root[$extras]"
 
 if "$venv/bin/python" -c "import importlib.util, sys; sys.exit(importlib.util.find_spec('torchvision') is None)"; then
   echo "setup: torchvision got installed; it breaks transformers with the CPU torch. Remove what pulled it in." >&2
