@@ -15,16 +15,9 @@ from thgs import Gaussians
 from thgs.errors import InputError, ThgsError
 from thgs.eval import purity
 from thgs.graph import GraphConfig, KnnGraph, PartitionConfig, knn_graph, partition
-from thgs.graph.partition import (
-    ATOM_TOLERANCE,
-    _blocks,
-    _coarsened,
-    _connected,
-    _edge_weights,
-    _features,
-    _joined,
-    _polished,
-)
+from thgs.graph.coarsen import ATOM_TOLERANCE, coarsen
+from thgs.graph.energy import connected, join_seams, polish
+from thgs.graph.partition import _blocks, _edge_weights, _features
 from thgs.pipeline import SuperpointConfig
 from thgs.scene.gaussians import SH_C0
 from thgs.synthetic import generate_scene, preset
@@ -302,7 +295,10 @@ def test_polishing_moves_a_misplaced_vertex_by_hand():
     weights = np.ones(5)
     config = PartitionConfig(min_comp_weight=1)
     start = np.array([0, 0, 0, 0, 1, 1])
-    polished = _polished(start, features, sources, targets, weights, config)
+    cost = config.regularization * weights
+    polished = polish(
+        start, features, sources, targets, cost, config.cp_it_max, config.min_comp_weight
+    )
     np.testing.assert_array_equal(polished, [0, 0, 0, 1, 1, 1])
     before = brute_energy(features, start, sources, targets, weights, 0.1)
     after = brute_energy(features, polished, sources, targets, weights, 0.1)
@@ -325,7 +321,11 @@ def test_polishing_takes_a_small_cluster_back_to_its_surface():
     weights = np.ones(len(edges))
     weights[-1] = 0.1
     start = np.array([0] * 20 + [1] * 20 + [1] * 5)
-    polished = _polished(start, features, sources, targets, weights, PartitionConfig())
+    config = PartitionConfig()
+    cost = config.regularization * weights
+    polished = polish(
+        start, features, sources, targets, cost, config.cp_it_max, config.min_comp_weight
+    )
     np.testing.assert_array_equal(polished, [0] * 20 + [1] * 20 + [0] * 5)
     energies = [
         brute_energy(features, labels, sources, targets, weights, 0.1)
@@ -342,10 +342,10 @@ def test_pieces_are_made_connected_and_small_ones_join_their_strongest_neighbour
     weights = np.ones(9)
     weights[4] = 2.0
     labels = np.array([0, 0, 0, 1, 1, 0, 0, 0, 0, 2])
-    pieces_only = _connected(labels, sources, targets, weights, min_size=1)
+    pieces_only = connected(labels, sources, targets, weights, min_size=1)
     assert len(np.unique(pieces_only)) == 4
     assert len(np.unique(pieces_only[[0, 5]])) == 2  # the two halves of label 0 are apart
-    joined = _connected(labels, sources, targets, weights, min_size=3)
+    joined = connected(labels, sources, targets, weights, min_size=3)
     assert joined[0] == joined[1] == joined[2]
     assert len(set(joined[3:])) == 1 and joined[3] != joined[0]
 
@@ -377,10 +377,10 @@ def test_joining_merges_across_a_seam_only_where_the_energy_falls():
     seam = np.array([False, True, False])
     cost = np.array([1.0, 1.0, 1.0])
     features = np.array([[0.0], [0.0], [0.0], [10.0]])
-    joined = _joined(np.array([0, 0, 1, 2]), features, sources, targets, cost, seam)
+    joined = join_seams(np.array([0, 0, 1, 2]), features, sources, targets, cost, seam)
     np.testing.assert_array_equal(joined, [0, 0, 0, 2])  # gain 2/3 · 0 − 1 < 0; c–d no seam
     features[2] = 2.0  # 2/3 · 4 − 1 > 0: apart
-    joined = _joined(np.array([0, 0, 1, 2]), features, sources, targets, cost, seam)
+    joined = join_seams(np.array([0, 0, 1, 2]), features, sources, targets, cost, seam)
     np.testing.assert_array_equal(joined, [0, 0, 1, 2])
 
 
@@ -421,7 +421,7 @@ def test_joining_matches_its_brute_force_reference(seed):
     features = np.column_stack([means, rng.normal(0, 0.3, n)])
     cost = rng.uniform(0.05, 0.5, len(sources))
     labels = block * 100 + (means[:, 1] * 4).astype(int)  # stripes, cut at the seam
-    fast = _joined(labels, features, sources, targets, cost, seam)
+    fast = join_seams(labels, features, sources, targets, cost, seam)
     slow = _joined_slowly(labels, features, sources, targets, cost, seam)
     assert len(np.unique(fast)) < len(np.unique(labels))  # some seam pairs were merged
     np.testing.assert_array_equal(np.unique(fast, return_inverse=True)[1], slow)
@@ -503,8 +503,8 @@ def _plane_task(n: int = 2000, seed: int = 4):
 def test_atoms_keep_the_energy_of_every_partition_that_keeps_them_whole():
     features, sources, targets, weights, joinable = _plane_task()
     config = PartitionConfig(coarsen_levels=3)
-    atom, (atom_features, atom_sources, atom_targets, atom_weights, sizes) = _coarsened(
-        features, sources, targets, weights, joinable, config
+    atom, (atom_features, atom_sources, atom_targets, atom_weights, sizes) = coarsen(
+        features, sources, targets, weights, joinable, config.regularization, config.coarsen_levels
     )
     n, count = len(features), int(atom.max()) + 1
     assert count < 0.7 * n  # three passes joined many Gaussians
@@ -556,9 +556,7 @@ def test_atoms_keep_the_energy_of_every_partition_that_keeps_them_whole():
 
 def test_a_match_raises_the_data_term_by_at_most_its_share_of_the_cut():
     features, sources, targets, weights, joinable = _plane_task(seed=5)
-    atom, _ = _coarsened(
-        features, sources, targets, weights, joinable, PartitionConfig(coarsen_levels=1)
-    )
+    atom, _ = coarsen(features, sources, targets, weights, joinable, 0.1, 1)
     sizes = np.bincount(atom)
     assert set(sizes.tolist()) == {1, 2}  # one pass: pairs and singles
     pairs = np.flatnonzero(sizes == 2)

@@ -14,16 +14,17 @@ at the median of its longest axis: the data decide the blocks, not the threads),
 connected piece of a block is solved by the solver on one thread (its parallel split cuts
 differently with another thread count), in parallel worker processes (:func:`_solved`), and
 superpoints that meet across a block seam are merged while that lowers the
-same energy (:func:`_joined`). Single-Gaussian moves then polish the whole partition.
+same energy (:func:`thgs.graph.energy.join_seams`). Single-Gaussian moves then polish the
+whole partition (:func:`thgs.graph.energy.polish`).
 
 With ``coarsen_levels``, each piece's graph is first coarsened by heavy-edge matching into atoms
-of Gaussians that would rather stay together (:func:`_coarsened`) and the solver works on the
-atoms, weighted by their sizes: the same energy for every partition keeping atoms whole.
+of Gaussians that would rather stay together (:func:`thgs.graph.coarsen.coarsen`) and the
+solver works on the atoms, weighted by their sizes: the same energy for every partition keeping
+atoms whole.
 """
 
 from __future__ import annotations
 
-import heapq
 import logging
 import pickle
 import subprocess
@@ -40,6 +41,8 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from thgs.errors import InputError, ThgsError
+from thgs.graph.coarsen import coarsen
+from thgs.graph.energy import join_seams, polish
 from thgs.graph.knn import KnnGraph, nearest_neighbors
 from thgs.scene.gaussians import Gaussians
 
@@ -52,10 +55,6 @@ MIN_BLOCK_SIZE = 1000
 
 MAX_COARSEN_LEVELS = 8
 """The most matching passes before the solver (each about halves the vertices)."""
-
-ATOM_TOLERANCE = 0.5
-"""Two vertices are matched only when joining them raises the data term by at most this share
-of the price of cutting their edge (:func:`_matching`)."""
 
 
 @dataclass(frozen=True)
@@ -324,290 +323,6 @@ def _solver_arguments(
     return args, kwargs
 
 
-def _polished(
-    labels: np.ndarray,
-    features: np.ndarray,
-    sources: np.ndarray,
-    targets: np.ndarray,
-    weights: np.ndarray,
-    config: PartitionConfig,
-) -> np.ndarray:
-    """[N] component ids after passes of single-vertex moves on cut pursuit's energy
-    ``Σ_i ‖x_i − c(i)‖² + R · Σ_(i,j) w_ij [i, j apart]`` (c: each component's mean feature).
-
-    In each pass every vertex takes, among its own component and its neighbours', the one of
-    lowest energy for it alone (:func:`_best_components`), the means held fixed; a pass is kept
-    only if the whole energy, recomputed, went down. At most ``config.cp_it_max`` passes. The
-    components are then made connected again (:func:`_connected`), keeping
-    ``config.min_comp_weight``.
-    """
-    _, labels = np.unique(labels, return_inverse=True)  # 0 … C − 1 from here on
-    count = int(labels.max()) + 1
-    n = len(labels)
-    cost = config.regularization * weights.astype(np.float64)
-    first_edge, neighbour, edge_cost = _both_directions(n, sources, targets, cost)
-    features = features.astype(np.float64)
-    means = _means(labels, features, count)
-    energy = _energy(labels, features, means, sources, targets, cost)
-    for _ in range(config.cp_it_max):
-        moved = _best_components(first_edge, neighbour, edge_cost, labels, features, means)
-        if (moved == labels).all():
-            break
-        moved_means = _means(moved, features, count)
-        moved_energy = _energy(moved, features, moved_means, sources, targets, cost)
-        if moved_energy >= energy:
-            break
-        labels, means, energy = moved, moved_means, moved_energy
-    return _connected(labels, sources, targets, cost, config.min_comp_weight)
-
-
-@numba.njit(cache=True)
-def _both_directions(n, sources, targets, cost):  # pragma: no cover
-    """Forward star ``(first_edge [n + 1], neighbour [2E], cost [2E])`` of the undirected edges
-    ``sources[e] – targets[e]``, each stored from both ends."""
-    first_edge = np.zeros(n + 1, dtype=np.int64)
-    for e in range(sources.size):
-        first_edge[sources[e] + 1] += 1
-        first_edge[targets[e] + 1] += 1
-    for v in range(n):
-        first_edge[v + 1] += first_edge[v]
-    fill = first_edge[:-1].copy()
-    neighbour = np.empty(2 * sources.size, dtype=np.int64)
-    both_cost = np.empty(2 * sources.size, dtype=np.float64)
-    for e in range(sources.size):
-        a, b = sources[e], targets[e]
-        neighbour[fill[a]] = b
-        both_cost[fill[a]] = cost[e]
-        fill[a] += 1
-        neighbour[fill[b]] = a
-        both_cost[fill[b]] = cost[e]
-        fill[b] += 1
-    return first_edge, neighbour, both_cost
-
-
-@numba.njit(cache=True)
-def _best_components(first_edge, neighbour, cost, dense, features, means):  # pragma: no cover
-    """[N] for each vertex, among its own component and its neighbours' (``dense`` ids), the one
-    of lowest ``‖x − mean‖² + weight of its edges into other components``; its own on a tie,
-    else the lowest id. Edges in forward-star form over both directions."""
-    n, dim = features.shape
-    best = dense.copy()
-    slots = np.max(first_edge[1:] - first_edge[:-1]) + 1 if n else 1  # own + one per edge
-    options = np.empty(slots, dtype=np.int64)
-    joined = np.empty(slots, dtype=np.float64)
-    for v in range(n):
-        own = dense[v]
-        count = 1
-        options[0] = own
-        joined[0] = 0.0
-        total = 0.0
-        apart = False
-        for e in range(first_edge[v], first_edge[v + 1]):
-            other = dense[neighbour[e]]
-            total += cost[e]
-            slot = -1
-            for q in range(count):
-                if options[q] == other:
-                    slot = q
-                    break
-            if slot < 0:
-                apart = True
-                slot = count
-                options[count] = other
-                joined[count] = 0.0
-                count += 1
-            joined[slot] += cost[e]
-        if not apart:
-            continue
-        chosen, lowest = own, np.inf
-        for q in range(count):
-            distance = 0.0
-            for d in range(dim):
-                step = features[v, d] - means[options[q], d]
-                distance += step * step
-            energy = distance + total - joined[q]
-            if energy < lowest or (
-                energy == lowest and (options[q] == own or (chosen != own and options[q] < chosen))
-            ):
-                chosen, lowest = options[q], energy
-        best[v] = chosen
-    return best
-
-
-def _connected(
-    labels: np.ndarray, sources: np.ndarray, targets: np.ndarray, cost: np.ndarray, min_size: float
-) -> np.ndarray:
-    """[N] ids of the connected pieces of each component (edges ``sources[e] – targets[e]`` of
-    weight ``cost[e]``); a piece smaller than ``min_size`` joins the adjacent piece it shares the
-    most edge weight with (repeatedly, so that joined small pieces grow), as the solver merges
-    its small components."""
-    same = labels[sources] == labels[targets]
-    _, piece = np.unique(
-        _union_roots(len(labels), sources[same], targets[same]), return_inverse=True
-    )
-    across = np.flatnonzero(~same)
-    start = np.r_[sources[across], targets[across]]
-    end = np.r_[targets[across], sources[across]]
-    weight = np.r_[cost[across], cost[across]]
-    while True:
-        count = int(piece.max()) + 1
-        sizes = np.bincount(piece, minlength=count)
-        small = (piece[start] != piece[end]) & (sizes[piece[start]] < min_size)
-        if not small.any():
-            return piece.astype(np.int64)
-        pairs = piece[start[small]] * count + piece[end[small]]
-        keys, inverse = np.unique(pairs, return_inverse=True)
-        shared = np.bincount(inverse, weights=weight[small])
-        source, target = keys // count, keys % count
-        order = np.lexsort((target, -shared, source))  # per small piece: most shared weight
-        first = order[np.r_[True, np.diff(source[order]) != 0]]
-        _, root = np.unique(_union_roots(count, source[first], target[first]), return_inverse=True)
-        piece = root[piece]
-
-
-@numba.njit(cache=True)
-def _union_roots(n, sources, targets):  # pragma: no cover
-    """[n] a root vertex per connected piece of the edges ``sources[e] – targets[e]``
-    (union–find with path halving)."""
-    parent = np.arange(n)
-    for e in range(sources.size):
-        a, b = sources[e], targets[e]
-        while parent[a] != a:
-            parent[a] = parent[parent[a]]
-            a = parent[a]
-        while parent[b] != b:
-            parent[b] = parent[parent[b]]
-            b = parent[b]
-        if a != b:
-            parent[max(a, b)] = min(a, b)
-    for v in range(n):
-        root = v
-        while parent[root] != root:
-            root = parent[root]
-        parent[v] = root
-    return parent
-
-
-@numba.njit(cache=True)
-def _means(labels, features, count):  # pragma: no cover
-    """[count, D] mean feature of each component (0 for an empty one)."""
-    sums = np.zeros((count, features.shape[1]))
-    sizes = np.zeros(count)
-    for v in range(features.shape[0]):
-        sizes[labels[v]] += 1.0
-        for d in range(features.shape[1]):
-            sums[labels[v], d] += features[v, d]
-    for c in range(count):
-        if sizes[c] > 0:
-            # element by element: an array operation compiles numba's shape-mismatch error
-            # path, seconds of a first run's compilation
-            for d in range(features.shape[1]):
-                sums[c, d] /= sizes[c]
-    return sums
-
-
-@numba.njit(cache=True)
-def _energy(labels, features, means, sources, targets, cost):  # pragma: no cover
-    """Cut pursuit's energy of ``labels`` with components' mean features ``means``, over the
-    undirected edges ``sources[e] – targets[e]`` of weight ``cost[e]`` (R included)."""
-    total = 0.0
-    for v in range(features.shape[0]):
-        for d in range(features.shape[1]):
-            step = features[v, d] - means[labels[v], d]
-            total += step * step
-    for e in range(sources.size):
-        if labels[sources[e]] != labels[targets[e]]:
-            total += cost[e]
-    return total
-
-
-@numba.njit(cache=True)
-def _matching(first_edge, neighbour, cost, features, weight, tolerance):  # pragma: no cover
-    """[n] atom id per vertex after one pass of heavy-edge matching.
-
-    Each vertex not yet matched, in index order, is matched to the unmatched neighbour across
-    its heaviest edge (the first found on a tie) among those whose join raises the data term,
-    ``w_u w_v / (w_u + w_v) · ‖f_u − f_v‖²``, by at most ``tolerance`` times the edge's
-    ``cost``; a vertex without such a neighbour stays alone. Atoms are numbered in order of
-    their smallest vertex. Edges in forward-star form over both directions."""
-    n, dim = features.shape
-    mate = np.full(n, -1, np.int64)
-    for v in range(n):
-        if mate[v] >= 0:
-            continue
-        chosen = -1
-        heaviest = 0.0
-        for e in range(first_edge[v], first_edge[v + 1]):
-            u = neighbour[e]
-            if u == v or mate[u] >= 0 or cost[e] <= heaviest:
-                continue
-            distance = 0.0
-            for d in range(dim):
-                step = features[v, d] - features[u, d]
-                distance += step * step
-            if weight[v] * weight[u] / (weight[v] + weight[u]) * distance <= tolerance * cost[e]:
-                chosen, heaviest = u, cost[e]
-        if chosen < 0:
-            mate[v] = v
-        else:
-            mate[v], mate[chosen] = chosen, v
-    atom = np.empty(n, np.int64)
-    count = 0
-    for v in range(n):
-        if mate[v] >= v:
-            atom[v] = count
-            atom[mate[v]] = count
-            count += 1
-    return atom
-
-
-def _coarsened(
-    features: np.ndarray,
-    sources: np.ndarray,
-    targets: np.ndarray,
-    weights: np.ndarray,
-    joinable: np.ndarray,
-    config: PartitionConfig,
-) -> tuple[np.ndarray, tuple]:
-    """The solver's task on atoms: ``(atom [m], (features [a, 9], sources [E'], targets [E'],
-    weights [E'], vertex_weights [a]))`` after ``config.coarsen_levels`` passes of
-    :func:`_matching` on one piece's graph (``features`` [m, 9], edges ``sources[e] <
-    targets[e]`` with ``weights`` [E] before R).
-
-    An atom's feature is the mean of its Gaussians' and its weight their count; the edges
-    between two atoms are one edge of their summed weight. Cut pursuit's energy of any partition
-    that keeps every atom whole is the same on the atoms as on the Gaussians, up to a constant
-    (the atoms' own scatter), so the solver sees the same problem, smaller; single-Gaussian
-    moves afterwards (``config.polish``) can still part what a match joined."""
-    atom = np.arange(len(features))
-    vertex_weights = np.ones(len(features))
-    features = features.astype(np.float64)
-    for _ in range(config.coarsen_levels):
-        first_edge, neighbour, cost = _both_directions(
-            len(features), sources, targets, np.where(joinable, config.regularization * weights, 0)
-        )
-        matched = _matching(first_edge, neighbour, cost, features, vertex_weights, ATOM_TOLERANCE)
-        count = int(matched.max()) + 1
-        if count == len(features):
-            break
-        sums = np.stack(
-            [np.bincount(matched, vertex_weights * column, count) for column in features.T], 1
-        )
-        vertex_weights = np.bincount(matched, vertex_weights, count)
-        features = sums / vertex_weights[:, None]
-        a, b = matched[sources], matched[targets]
-        apart = a != b
-        keys, inverse = np.unique(
-            np.minimum(a, b)[apart] * count + np.maximum(a, b)[apart], return_inverse=True
-        )
-        weights = np.bincount(inverse, weights[apart])
-        joinable = np.bincount(inverse, (~joinable[apart]).astype(np.float64)) == 0
-        sources, targets = keys // count, keys % count
-        atom = matched[atom]
-    log.debug("coarsened %d Gaussians into %d atoms", len(atom), len(features))
-    return atom, (features.astype(np.float32), sources, targets, weights, vertex_weights)
-
-
 def _relabel(components: np.ndarray) -> np.ndarray:
     """[N] int32 ids 0 … S−1 numbered by each component's smallest Gaussian index."""
     _, first, inverse = np.unique(components, return_index=True, return_inverse=True)
@@ -741,81 +456,6 @@ def _solved(
     return found
 
 
-def _joined(
-    labels: np.ndarray,
-    features: np.ndarray,
-    sources: np.ndarray,
-    targets: np.ndarray,
-    cost: np.ndarray,
-    seam: np.ndarray,
-) -> np.ndarray:
-    """[N] component ids after merging components that meet across a block seam.
-
-    Merging components a and b changes cut pursuit's energy by
-    ``n_a n_b / (n_a + n_b) · ‖c_a − c_b‖² − w_ab`` (c: mean feature, n: size, w_ab: the
-    summed ``cost`` of the edges between them): the pair joined by at least one seam edge
-    (``seam`` [E] bool) with the most negative change is merged, its edges and means updated,
-    until no such pair lowers the energy (ties: the lower ids first; the merged component keeps
-    the lower id)."""
-    _, labels = np.unique(labels, return_inverse=True)
-    count = int(labels.max()) + 1
-    sizes = np.bincount(labels, minlength=count).astype(np.float64)
-    sums = np.stack(
-        [np.bincount(labels, weights=column, minlength=count) for column in features.T], axis=1
-    )
-    a, b = labels[sources], labels[targets]
-    apart = a != b
-    low, high = np.minimum(a, b)[apart], np.maximum(a, b)[apart]
-    keys, inverse = np.unique(low * count + high, return_inverse=True)
-    weight = np.bincount(inverse, weights=cost[apart])
-    crossing = np.bincount(inverse, weights=seam[apart].astype(np.float64)) > 0
-
-    def change(x: int, y: int, w: float) -> float:
-        step = sums[x] / sizes[x] - sums[y] / sizes[y]
-        return float(sizes[x] * sizes[y] / (sizes[x] + sizes[y]) * (step @ step)) - w
-
-    edges: list[dict[int, list]] = [{} for _ in range(count)]
-    heap = []
-    for x, y, w, c in zip((keys // count).tolist(), (keys % count).tolist(), weight, crossing):
-        edges[x][y] = [float(w), bool(c)]
-        edges[y][x] = [float(w), bool(c)]
-        if c and (gain := change(x, y, float(w))) < 0:
-            heap.append((gain, x, y, 0, 0))
-    heapq.heapify(heap)
-    version = [0] * count
-    root = np.arange(count)
-    while heap:
-        _, x, y, seen_x, seen_y = heapq.heappop(heap)
-        if version[x] != seen_x or version[y] != seen_y:
-            continue  # one of them changed since: its pairs were pushed again
-        sizes[x] += sizes[y]
-        sums[x] += sums[y]
-        root[y] = x
-        del edges[x][y]
-        for z, (w, c) in edges[y].items():
-            if z == x:
-                continue
-            del edges[z][y]
-            if z in edges[x]:
-                edges[x][z][0] += w
-                edges[x][z][1] |= c
-                edges[z][x][0] += w
-                edges[z][x][1] |= c
-            else:
-                edges[x][z] = [w, c]
-                edges[z][x] = [w, c]
-        edges[y] = {}
-        version[x] += 1
-        version[y] += 1
-        for z, (w, c) in edges[x].items():
-            low_id, high_id = min(x, z), max(x, z)
-            if c and (gain := change(low_id, high_id, w)) < 0:
-                heapq.heappush(heap, (gain, low_id, high_id, version[low_id], version[high_id]))
-    while not (root[root] == root).all():
-        root = root[root]
-    return root[labels]
-
-
 def partition(
     gaussians: Gaussians,
     graph: KnnGraph,
@@ -832,8 +472,9 @@ def partition(
     edges it cuts, so pieces of a disconnected graph would otherwise share one value. A piece
     smaller than ``max(2, 2 · min_comp_weight)`` Gaussians cannot hold two superpoints and is
     one superpoint without a solver call. Superpoints meeting across a block seam are then
-    merged while that lowers the energy (:func:`_joined`), and with ``config.polish`` single
-    Gaussians move to a neighbouring superpoint while that lowers it (:func:`_polished`).
+    merged while that lowers the energy (:func:`thgs.graph.energy.join_seams`), and with
+    ``config.polish`` single Gaussians move to a neighbouring superpoint while that lowers it
+    (:func:`thgs.graph.energy.polish`).
 
     Args:
         gaussians: the N Gaussians; centres (world frame, scene units), DC colours and surface
@@ -914,7 +555,7 @@ def partition(
             inner_weights[edges],
         )
         atom, task = (
-            _coarsened(*task, inner_joinable[edges], config)
+            coarsen(*task, inner_joinable[edges], config.regularization, config.coarsen_levels)
             if config.coarsen_levels
             else (None, (*task, None))
         )
@@ -924,9 +565,13 @@ def partition(
         components[members[starts[p] : starts[p + 1]]] += found if atom is None else found[atom]
     cost = config.regularization * weights.astype(np.float64)
     if seam.any():
-        components = _joined(components, features.astype(np.float64), sources, targets, cost, seam)
+        components = join_seams(
+            components, features.astype(np.float64), sources, targets, cost, seam
+        )
     if config.polish:
-        components = _polished(components, features, sources, targets, weights, config)
+        components = polish(
+            components, features, sources, targets, cost, config.cp_it_max, config.min_comp_weight
+        )
     labels = _relabel(components)
     log.info(
         "partition: %d Gaussians, %d edges, %d blocks, %d pieces (%d solved, %d workers) → %d "
