@@ -24,7 +24,7 @@ from thgs.lift import (
 )
 from thgs.render import RasterConfig, splat_back, splat_labels
 from thgs.synthetic import OracleConfig, SceneConfig, generate_scene, oracle_guidance, render_view
-from thgs.synthetic.oracle import ground_truth_maps
+from thgs.synthetic.sam_masks import ground_truth_maps
 
 METHODS = ["latent", "exact"]
 

@@ -23,17 +23,15 @@ from thgs.synthetic import (
 )
 from thgs.synthetic.catalog import CONFUSABLE_NAMES, FLOOR_OBJECTS, TABLE_OBJECTS
 from thgs.synthetic.oracle import (
-    LevelMasks,
     MaskContext,
-    clean_masks,
     compression_direction,
-    ground_truth_maps,
     mask_context,
     mask_contexts,
     mask_embeddings,
     mask_features,
     oracle_guidance,
 )
+from thgs.synthetic.sam_masks import LevelMasks, clean_masks, ground_truth_maps
 
 VOCABULARY = (
     "mug", "mug body", "coffee", "mug handle", "table", "table top", "bottle", "bottle body",

@@ -23,15 +23,8 @@ from thgs.synthetic import (
     render_view,
 )
 from thgs.synthetic.catalog import FLOOR_OBJECTS, TABLE_OBJECTS
-from thgs.synthetic.oracle import (
-    apply_faults,
-    clean_masks,
-    ground_truth_maps,
-    mask_context,
-    mask_features,
-    oracle_guidance,
-    pool_default,
-)
+from thgs.synthetic.oracle import mask_context, mask_features, oracle_guidance
+from thgs.synthetic.sam_masks import apply_faults, clean_masks, ground_truth_maps, pool_default
 from thgs.synthetic.shapes import Box, Disc, Ellipsoid, Frustum, Rect, TorusArc
 
 TINY = SceneConfig(gaussians=8000, views=3, width=120, height=90, table_objects=5, seed=3)
@@ -250,7 +243,7 @@ def test_severity_zero_reproduces_the_ground_truth_components(scene, view):
     _, maps = view
     config = OracleConfig(severity=0.0, min_pixels=1, feature_noise=0.0)
     clean = clean_masks(maps, scene.hierarchy)
-    faulty = apply_faults(clean, maps, scene.hierarchy, config, np.random.default_rng(0))
+    faulty = apply_faults(clean, maps, scene.hierarchy, config.faults(), np.random.default_rng(0))
     for level in range(3):
         expected = _flood_components(maps[level])
         assert set(_mask_sets(faulty[level])) == expected
@@ -312,7 +305,8 @@ def _only(**rates) -> OracleConfig:
 
 def _faults(scene, maps, config, seed=0):
     clean = clean_masks(maps, scene.hierarchy)
-    return clean, apply_faults(clean, maps, scene.hierarchy, config, np.random.default_rng(seed))
+    rng = np.random.default_rng(seed)
+    return clean, apply_faults(clean, maps, scene.hierarchy, config.faults(), rng)
 
 
 def test_drop_only_removes_whole_masks(scene, view):

@@ -41,7 +41,7 @@ from thgs.synthetic import (
 )
 from thgs.synthetic.cache import synthetic_dataset
 from thgs.synthetic.dataset import SCANNET_LABELS, _class_masks
-from thgs.synthetic.oracle import ground_truth_maps
+from thgs.synthetic.sam_masks import ground_truth_maps
 from thgs.text import MINILM_SPACE
 
 TINY = SceneConfig(gaussians=6000, views=4, width=96, height=72, table_objects=4, seed=7)

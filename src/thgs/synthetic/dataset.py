@@ -51,7 +51,8 @@ from thgs.guidance import write_embedding_space, write_view_guidance
 from thgs.hierarchy.levels import LEVEL_NAMES
 from thgs.render import render
 from thgs.scene import write_cameras_json, write_colmap, write_ply, write_transforms_json
-from thgs.synthetic.oracle import OracleConfig, ground_truth_maps, oracle_guidance
+from thgs.synthetic.oracle import OracleConfig, oracle_guidance
+from thgs.synthetic.sam_masks import ground_truth_maps
 from thgs.synthetic.scene import SyntheticScene
 from thgs.text import TextEncoder
 

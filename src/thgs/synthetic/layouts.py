@@ -115,7 +115,7 @@ from thgs.scene import (
 )
 from thgs.scene.transforms_json import OPENGL_TO_OPENCV
 from thgs.synthetic.dataset import label_categories, render_view
-from thgs.synthetic.oracle import ground_truth_maps
+from thgs.synthetic.sam_masks import ground_truth_maps
 from thgs.synthetic.scene import SceneConfig, SyntheticScene
 
 __all__ = [

@@ -1,22 +1,8 @@
 """Oracle guidance: SAM-like multi-level masks and CLIP-like features from the ground truth.
 
-Per view, the ground-truth label maps at the three levels (sub-part, part, object) come from the
-max-weight Gaussian of every pixel. Their 4-connected components are the clean masks of SAM's
-levels s, m and l. Faults then make them look like SAM's output, each with a rate scaled by one
-``severity`` knob (0 = clean), in this order:
-
-1. wrong level — a mask is replaced by the component of a neighbouring level that overlaps it most
-   (a part-sized mask among the sub-parts, …), with that level's name;
-2. merge — two touching masks become one (named after the larger);
-3. split — a mask is cut in two by a random line through its pixels' median (both keep the name);
-4. drop — a mask disappears (its pixels get no mask);
-5. boundary jitter — a mask grows (taking pixels from whatever was there) or shrinks (leaving
-   pixels without a mask) by 1 … ``max_jitter`` pixels;
-6. spurious — small elliptical masks appear, named after the ground truth under their centre.
-
-The ``default`` level pools the final s, m and l masks the way LangSplat stores SAM's automatic
-masks: identical masks once, painted largest first so that the smallest mask containing a pixel
-wins.
+The masks are :mod:`thgs.synthetic.sam_masks`'s: each view's ground-truth components at
+SAM's levels s, m and l with SAM's faults applied, each at a rate scaled by one ``severity`` knob
+(0 = clean), and LangSplat's ``default`` level pooled from them.
 
 Each mask's feature is the text embedding of its name plus Gaussian noise, renormalized: a
 stand-in for the CLIP embedding of the mask's crop. Real crops are not name-perfect, and four
@@ -56,25 +42,30 @@ from thgs.errors import InputError
 from thgs.eval.ground_truth import Hierarchy
 from thgs.guidance import ViewGuidance
 from thgs.synthetic.catalog import CONFUSABLE_NAMES
+from thgs.synthetic.sam_masks import (
+    LevelMasks,
+    MaskFaults,
+    apply_faults,
+    clean_masks,
+    disk,
+    ground_truth_maps,
+    grown_box,
+    pool_default,
+)
 from thgs.text import TextEncoder
 
 __all__ = [
     "CLIP_GRID",
     "STAND_INS",
     "FaultRates",
-    "LevelMasks",
     "MaskContext",
     "OracleConfig",
-    "apply_faults",
-    "clean_masks",
     "compression_direction",
-    "ground_truth_maps",
     "mask_context",
     "mask_contexts",
     "mask_embeddings",
     "mask_features",
     "oracle_guidance",
-    "pool_default",
     "stand_in",
     "stand_in_spec",
 ]
@@ -205,6 +196,17 @@ class OracleConfig:
     def rate(self, name: str) -> float:
         return getattr(self.rates, name) * self.severity
 
+    def faults(self) -> MaskFaults:
+        """The fault rates at this severity and the masks' sizes, as :func:`apply_faults` takes
+        them."""
+        return MaskFaults(
+            **{name: self.rate(name) for name in asdict(self.rates)},
+            max_jitter=self.max_jitter,
+            spurious_radius=self.spurious_radius,
+            min_split_pixels=self.min_split_pixels,
+            min_pixels=self.min_pixels,
+        )
+
     @property
     def clip_like_effects(self) -> bool:
         """Whether any of parent drift, surroundings or confusion is set (they need each
@@ -321,264 +323,6 @@ def stand_in_spec(config: OracleConfig) -> str:
     return best[1]
 
 
-@dataclass(frozen=True, eq=False)
-class LevelMasks:
-    """Non-overlapping masks of one level in one view.
-
-    Attributes:
-        ids: [H, W] int32 mask index per pixel, −1 = no mask.
-        names: the text name of every mask (``len(names)`` masks, each with at least one pixel
-            after :meth:`compact`).
-    """
-
-    ids: np.ndarray
-    names: tuple[str, ...]
-
-    def __len__(self) -> int:
-        return len(self.names)
-
-    def without_small(self, min_pixels: int) -> LevelMasks:
-        """Masks with fewer than ``min_pixels`` pixels removed (their pixels get no mask)."""
-        areas = np.bincount(self.ids[self.ids >= 0], minlength=len(self.names))
-        small = np.concatenate([[False], areas < min_pixels])
-        return LevelMasks(np.where(small[self.ids + 1], -1, self.ids).astype(np.int32), self.names)
-
-    def compact(self) -> LevelMasks:
-        """Drop masks with no pixels left and renumber the rest in order."""
-        keep = np.bincount(self.ids.ravel() + 1, minlength=len(self.names) + 1)[1:] > 0
-        new_index = np.full(len(self.names) + 1, -1, dtype=np.int32)
-        new_index[1:][keep] = np.arange(int(keep.sum()), dtype=np.int32)
-        names = tuple(name for name, kept in zip(self.names, keep) if kept)
-        return LevelMasks(new_index[self.ids + 1], names)
-
-
-def ground_truth_maps(max_id: np.ndarray, hierarchy: Hierarchy) -> np.ndarray:
-    """[3, H, W] int32 ground-truth node ids per pixel at levels 1, 2, 3 (sub-part, part,
-    object: SAM's s, m, l).
-
-    Args:
-        max_id: [H, W] index of each pixel's max-weight Gaussian, −1 where none.
-        hierarchy: the per-Gaussian ground truth.
-    """
-    padded = np.concatenate([hierarchy.labels[:, 1:], np.full((1, 3), -1, dtype=np.int32)])
-    return np.moveaxis(padded[max_id], -1, 0).astype(np.int32)
-
-
-def _components(node_map: np.ndarray, names: tuple[str, ...]) -> LevelMasks:
-    ids = np.full(node_map.shape, -1, dtype=np.int32)
-    mask_names: list[str] = []
-    for node, box in enumerate(ndimage.find_objects(node_map + 1)):
-        if box is None:
-            continue
-        labelled, count = ndimage.label(node_map[box] == node)
-        window = ids[box]
-        inside = labelled > 0
-        window[inside] = labelled[inside] - 1 + len(mask_names)
-        mask_names.extend([names[node]] * count)
-    return LevelMasks(ids, tuple(mask_names))
-
-
-def clean_masks(maps: np.ndarray, hierarchy: Hierarchy, min_pixels: int = 1) -> list[LevelMasks]:
-    """The 4-connected components of each level's ground-truth map (levels s, m, l), those
-    under ``min_pixels`` pixels left out."""
-    return [
-        _components(maps[index], hierarchy.names[index + 1]).without_small(min_pixels).compact()
-        for index in range(3)
-    ]
-
-
-def _grow(box: tuple[slice, slice], radius: int, shape: tuple[int, int]) -> tuple[slice, slice]:
-    return tuple(  # type: ignore[return-value]
-        slice(max(0, s.start - radius), min(size, s.stop + radius)) for s, size in zip(box, shape)
-    )
-
-
-def _disk(radius: int) -> np.ndarray:
-    y, x = np.mgrid[-radius : radius + 1, -radius : radius + 1]
-    return x * x + y * y <= radius * radius
-
-
-def _wrong_level(
-    masks: LevelMasks, level: int, clean: list[LevelMasks], p: float, rng: np.random.Generator
-) -> LevelMasks:
-    ids, names = masks.ids.copy(), list(masks.names)
-    for index in range(len(masks)):
-        if rng.uniform() >= p:
-            continue
-        other_levels = [k for k in (level - 1, level + 1) if 0 <= k < 3]
-        other = clean[other_levels[int(rng.integers(len(other_levels)))]]
-        own = masks.ids == index
-        overlap = other.ids[own]
-        overlap = overlap[overlap >= 0]
-        if overlap.size == 0:
-            continue
-        chosen = int(np.bincount(overlap).argmax())
-        ids[own & (ids == index)] = -1
-        ids[other.ids == chosen] = index
-        names[index] = other.names[chosen]
-    return LevelMasks(ids, tuple(names))
-
-
-def _merge(masks: LevelMasks, p: float, rng: np.random.Generator) -> LevelMasks:
-    ids = masks.ids
-    pairs = [
-        np.stack([ids[:, :-1].ravel(), ids[:, 1:].ravel()], axis=1),
-        np.stack([ids[:-1, :].ravel(), ids[1:, :].ravel()], axis=1),
-    ]
-    pairs = np.concatenate(pairs)
-    pairs = pairs[(pairs[:, 0] >= 0) & (pairs[:, 1] >= 0) & (pairs[:, 0] != pairs[:, 1])]
-    pairs = np.unique(np.sort(pairs, axis=1), axis=0)
-    areas = np.bincount(ids[ids >= 0], minlength=len(masks))
-    target = np.arange(len(masks))
-    used = np.zeros(len(masks), dtype=bool)
-    for a, b in pairs:
-        if rng.uniform() >= p or used[a] or used[b]:
-            continue
-        used[a] = used[b] = True
-        keep, gone = (a, b) if areas[a] >= areas[b] else (b, a)
-        target[gone] = keep
-    merged = np.full(ids.shape, -1, dtype=np.int32)
-    inside = ids >= 0
-    merged[inside] = target[ids[inside]]
-    return LevelMasks(merged, masks.names)
-
-
-def _split(masks: LevelMasks, p: float, min_pixels: int, rng: np.random.Generator) -> LevelMasks:
-    ids, names = masks.ids.copy(), list(masks.names)
-    for index, box in enumerate(ndimage.find_objects(masks.ids + 1, max_label=len(masks))):
-        if box is None or rng.uniform() >= p:
-            continue
-        rows, cols = np.nonzero(masks.ids[box] == index)
-        if rows.size < min_pixels:
-            continue
-        angle = rng.uniform(0.0, math.pi)
-        along = cols * math.cos(angle) + rows * math.sin(angle)
-        second = along > np.median(along)
-        if not second.any() or second.all():
-            continue
-        window = ids[box]
-        window[rows[second], cols[second]] = len(names)
-        names.append(names[index])
-    return LevelMasks(ids, tuple(names))
-
-
-def _drop(masks: LevelMasks, p: float, rng: np.random.Generator) -> LevelMasks:
-    dropped = np.concatenate([[False], rng.uniform(size=len(masks)) < p])
-    ids = np.where(dropped[masks.ids + 1], -1, masks.ids).astype(np.int32)
-    return LevelMasks(ids, masks.names)
-
-
-def _jitter(masks: LevelMasks, p: float, max_shift: int, rng: np.random.Generator) -> LevelMasks:
-    ids = masks.ids.copy()
-    for index, box in enumerate(ndimage.find_objects(masks.ids + 1, max_label=len(masks))):
-        if box is None or rng.uniform() >= p:
-            continue
-        radius = int(rng.integers(1, max_shift + 1))
-        grow = rng.uniform() < 0.5
-        window_box = _grow(box, radius + 1, ids.shape)
-        window = ids[window_box]
-        own = masks.ids[window_box] == index
-        if grow:
-            window[ndimage.binary_dilation(own, _disk(radius))] = index
-        else:
-            eroded = ndimage.binary_erosion(own, _disk(radius), border_value=1)
-            window[own & ~eroded & (window == index)] = -1
-    return LevelMasks(ids, masks.names)
-
-
-def _spurious(
-    masks: LevelMasks,
-    names_under: np.ndarray,
-    expected: float,
-    radius: tuple[int, int],
-    rng: np.random.Generator,
-) -> LevelMasks:
-    ids, names = masks.ids.copy(), list(masks.names)
-    height, width = ids.shape
-    reach = math.ceil(radius[1])
-    for _ in range(int(rng.poisson(expected))):
-        cy, cx = int(rng.integers(height)), int(rng.integers(width))
-        a, b = rng.uniform(radius[0], radius[1], size=2)
-        angle = rng.uniform(0.0, math.pi)
-        name = names_under[cy, cx]
-        if name is None:
-            continue
-        window = _grow((slice(cy, cy + 1), slice(cx, cx + 1)), reach, ids.shape)
-        yy, xx = np.mgrid[window]
-        dx, dy = xx - cx, yy - cy
-        u = dx * math.cos(angle) + dy * math.sin(angle)
-        v = -dx * math.sin(angle) + dy * math.cos(angle)
-        ids[window][(u / a) ** 2 + (v / b) ** 2 <= 1.0] = len(names)
-        names.append(str(name))
-    return LevelMasks(ids, tuple(names))
-
-
-def apply_faults(
-    clean: list[LevelMasks],
-    maps: np.ndarray,
-    hierarchy: Hierarchy,
-    config: OracleConfig,
-    rng: np.random.Generator,
-) -> list[LevelMasks]:
-    """SAM-like faults on the clean masks of the three levels (see the module docstring).
-
-    Args:
-        clean: :func:`clean_masks` of the view.
-        maps: [3, H, W] the view's :func:`ground_truth_maps` (names for spurious masks).
-        hierarchy: the ground truth (node names).
-        config: the rates, scaled by ``config.severity``.
-        rng: the view's random generator.
-
-    Returns:
-        the faulty masks of levels s, m, l, compacted.
-    """
-    faulty = []
-    for level, masks in enumerate(clean):
-        masks = _wrong_level(masks, level, clean, config.rate("wrong_level"), rng)
-        masks = _merge(masks, config.rate("merge"), rng)
-        masks = _split(masks, config.rate("split"), config.min_split_pixels, rng)
-        masks = _drop(masks, config.rate("drop"), rng)
-        masks = _jitter(masks, config.rate("jitter"), config.max_jitter, rng)
-        names_under = np.array([*hierarchy.names[level + 1], None], dtype=object)[maps[level]]
-        masks = _spurious(masks, names_under, config.rate("spurious"), config.spurious_radius, rng)
-        faulty.append(masks.without_small(config.min_pixels).compact())
-    return faulty
-
-
-def pool_default(levels: list[LevelMasks]) -> tuple[LevelMasks, list[tuple[int, int]]]:
-    """The ``default`` level: all masks of s, m, l, identical ones once, largest painted first.
-
-    Returns:
-        the pooled masks and, for each, the (level, index) it came from (its feature's source).
-    """
-    height, width = levels[0].ids.shape
-    candidates: list[tuple[int, int, int, np.ndarray]] = []
-    seen: set[bytes] = set()
-    for level, masks in enumerate(levels):
-        flat = masks.ids.ravel()
-        order = np.argsort(flat, kind="stable")
-        starts = np.searchsorted(flat[order], np.arange(len(masks) + 1))
-        for index in range(len(masks)):
-            pixels = order[starts[index] : starts[index + 1]]
-            key = pixels.tobytes()
-            if key in seen:
-                continue
-            seen.add(key)
-            candidates.append((-pixels.size, level, index, pixels))
-    candidates.sort(key=lambda item: item[:3])
-    ids = np.full(height * width, -1, dtype=np.int32)
-    for slot, (_, _, _, pixels) in enumerate(candidates):
-        ids[pixels] = slot
-    visible = np.zeros(len(candidates), dtype=bool)
-    visible[ids[ids >= 0]] = True  # masks painted over completely by smaller ones vanish
-    kept = [candidate for candidate, shown in zip(candidates, visible) if shown]
-    renumber = np.full(len(candidates) + 1, -1, dtype=np.int32)
-    renumber[1:][visible] = np.arange(len(kept), dtype=np.int32)
-    names = tuple(levels[level].names[index] for _, level, index, _ in kept)
-    pooled = LevelMasks(renumber[ids + 1].reshape(height, width), names)
-    return pooled, [(level, index) for _, level, index, _ in kept]
-
-
 _COMPRESSION_SEED = 20250419
 
 
@@ -615,7 +359,7 @@ def mask_contexts(
     count = len(masks)
     above = [_majority(masks.ids, maps[k], count) for k in range(level + 1, 3)]
     own = _majority(masks.ids, maps[2], count)
-    disk = _disk(radius)
+    ring_disk = disk(radius)
     contexts = []
     shape = masks.ids.shape
     for index, box in enumerate(ndimage.find_objects(masks.ids + 1, max_label=count)):
@@ -626,9 +370,9 @@ def mask_contexts(
             ancestors.append(hierarchy.names[level + 2 + offset][nodes[index]])
         surroundings = None
         if box is not None:
-            window = _grow(box, radius, shape)
+            window = grown_box(box, radius, shape)
             inside = masks.ids[window] == index
-            ring = ndimage.binary_dilation(inside, structure=disk) & ~inside
+            ring = ndimage.binary_dilation(inside, structure=ring_disk) & ~inside
             around = maps[2][window][ring]
             around = around[(around >= 0) & (around != own[index])]
             if around.size:
@@ -818,7 +562,7 @@ def oracle_guidance(
     rng = np.random.default_rng([config.seed, view_index])
     maps = ground_truth_maps(max_id, hierarchy)
     clean = clean_masks(maps, hierarchy, config.min_pixels)
-    levels = apply_faults(clean, maps, hierarchy, config, rng)
+    levels = apply_faults(clean, maps, hierarchy, config.faults(), rng)
     level_features = [
         _level_features(masks, level, maps, hierarchy, encoder, config, rng)
         for level, masks in enumerate(levels)
