@@ -83,7 +83,8 @@ def read_dataset_oracle(dataset: str | os.PathLike[str]):
         InputError: naming the file, when ``synthetic.json`` is missing, unreadable or not a
             thgs synthetic record.
     """
-    from thgs.synthetic.oracle import FaultRates, OracleConfig
+    from thgs.synthetic.oracle import OracleConfig
+    from thgs.synthetic.sam_masks import FaultRates
 
     path = Path(dataset) / "synthetic.json"
     if not path.is_file():

@@ -33,13 +33,12 @@ from thgs.synthetic.layouts import (
 from thgs.synthetic.oracle import (
     CLIP_GRID,
     STAND_INS,
-    FaultRates,
     OracleConfig,
     oracle_guidance,
     stand_in,
     stand_in_spec,
 )
-from thgs.synthetic.sam_masks import LevelMasks
+from thgs.synthetic.sam_masks import FaultRates, LevelMasks
 from thgs.synthetic.scene import PRESETS, SceneConfig, SyntheticScene, generate_scene, preset
 
 __all__ = [

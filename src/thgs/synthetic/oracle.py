@@ -43,6 +43,7 @@ from thgs.eval.ground_truth import Hierarchy
 from thgs.guidance import ViewGuidance
 from thgs.synthetic.catalog import CONFUSABLE_NAMES
 from thgs.synthetic.sam_masks import (
+    FaultRates,
     LevelMasks,
     MaskFaults,
     apply_faults,
@@ -57,7 +58,6 @@ from thgs.text import TextEncoder
 __all__ = [
     "CLIP_GRID",
     "STAND_INS",
-    "FaultRates",
     "MaskContext",
     "OracleConfig",
     "compression_direction",
@@ -69,27 +69,6 @@ __all__ = [
     "stand_in",
     "stand_in_spec",
 ]
-
-
-@dataclass(frozen=True)
-class FaultRates:
-    """Fault rates at severity 1 (scaled linearly by :attr:`OracleConfig.severity`).
-
-    Attributes:
-        wrong_level: probability per mask of being replaced by a neighbouring level's mask.
-        merge: probability per pair of touching masks of being merged.
-        split: probability per mask (of at least ``min_split_pixels``) of being split in two.
-        drop: probability per mask of disappearing.
-        jitter: probability per mask of growing or shrinking at its boundary.
-        spurious: expected number of spurious small masks per view and level.
-    """
-
-    wrong_level: float = 0.06
-    merge: float = 0.1
-    split: float = 0.1
-    drop: float = 0.08
-    jitter: float = 0.4
-    spurious: float = 2.0
 
 
 _STAND_IN_FIELDS = (
@@ -200,7 +179,7 @@ class OracleConfig:
         """The fault rates at this severity and the masks' sizes, as :func:`apply_faults` takes
         them."""
         return MaskFaults(
-            **{name: self.rate(name) for name in asdict(self.rates)},
+            FaultRates(**{name: self.rate(name) for name in asdict(self.rates)}),
             max_jitter=self.max_jitter,
             spurious_radius=self.spurious_radius,
             min_split_pixels=self.min_split_pixels,

@@ -30,6 +30,7 @@ from scipy import ndimage
 from thgs.eval.ground_truth import Hierarchy
 
 __all__ = [
+    "FaultRates",
     "LevelMasks",
     "MaskFaults",
     "apply_faults",
@@ -236,8 +237,9 @@ def _spurious(
 
 
 @dataclass(frozen=True)
-class MaskFaults:
-    """How often each fault strikes and how large its effects are (:func:`apply_faults`).
+class FaultRates:
+    """How often each fault strikes (:attr:`thgs.synthetic.OracleConfig.rates` holds them at
+    severity 1, scaled linearly by its ``severity``).
 
     Attributes:
         wrong_level: probability per mask of being replaced by a neighbouring level's mask.
@@ -246,18 +248,29 @@ class MaskFaults:
         drop: probability per mask of disappearing.
         jitter: probability per mask of growing or shrinking at its boundary.
         spurious: expected number of spurious small masks per view and level.
+    """
+
+    wrong_level: float = 0.06
+    merge: float = 0.1
+    split: float = 0.1
+    drop: float = 0.08
+    jitter: float = 0.4
+    spurious: float = 2.0
+
+
+@dataclass(frozen=True)
+class MaskFaults:
+    """The faults :func:`apply_faults` makes.
+
+    Attributes:
+        rates: how often each fault strikes.
         max_jitter: largest boundary shift in pixels.
         spurious_radius: range of the spurious ellipses' semi-axes in pixels.
         min_split_pixels: masks smaller than this are never split.
         min_pixels: masks smaller than this are removed after the faults.
     """
 
-    wrong_level: float
-    merge: float
-    split: float
-    drop: float
-    jitter: float
-    spurious: float
+    rates: FaultRates
     max_jitter: int
     spurious_radius: tuple[int, int]
     min_split_pixels: int
@@ -285,13 +298,14 @@ def apply_faults(
     """
     faulty = []
     for level, masks in enumerate(clean):
-        masks = _wrong_level(masks, level, clean, faults.wrong_level, rng)
-        masks = _merge(masks, faults.merge, rng)
-        masks = _split(masks, faults.split, faults.min_split_pixels, rng)
-        masks = _drop(masks, faults.drop, rng)
-        masks = _jitter(masks, faults.jitter, faults.max_jitter, rng)
+        rates = faults.rates
+        masks = _wrong_level(masks, level, clean, rates.wrong_level, rng)
+        masks = _merge(masks, rates.merge, rng)
+        masks = _split(masks, rates.split, faults.min_split_pixels, rng)
+        masks = _drop(masks, rates.drop, rng)
+        masks = _jitter(masks, rates.jitter, faults.max_jitter, rng)
         names_under = np.array([*hierarchy.names[level + 1], None], dtype=object)[maps[level]]
-        masks = _spurious(masks, names_under, faults.spurious, faults.spurious_radius, rng)
+        masks = _spurious(masks, names_under, rates.spurious, faults.spurious_radius, rng)
         faulty.append(masks.without_small(faults.min_pixels).compact())
     return faulty
 
