@@ -202,7 +202,7 @@ def polish(
     _, labels = np.unique(labels, return_inverse=True)  # 0 … C − 1 from here on
     count = int(labels.max()) + 1
     n = len(labels)
-    cost = cost.astype(np.float64)
+    cost = np.asarray(cost, dtype=np.float64)
     first_edge, neighbour, edge_cost = both_directions(n, sources, targets, cost)
     features = features.astype(np.float64)
     means = _means(labels, features, count)

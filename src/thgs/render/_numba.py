@@ -558,7 +558,7 @@ def _render_arrays(inputs: tuple, depths: np.ndarray, features: np.ndarray) -> t
     """(image [H, W, C], alpha, depth, max_id [H, W]) of :func:`_render_tiles` over every tile,
     the tiles dealt round-robin to ``numba.get_num_threads()`` threads (the kernel releases the
     GIL; each pixel is written by one thread, so the result does not depend on their number)."""
-    width, height = inputs[4], inputs[5]
+    _, start, _, _, width, height, *_ = inputs
     outputs = (
         np.zeros((height, width, features.shape[1])),
         np.zeros((height, width)),
@@ -566,7 +566,7 @@ def _render_arrays(inputs: tuple, depths: np.ndarray, features: np.ndarray) -> t
         np.full((height, width), -1, dtype=np.int64),
         np.zeros((height, width)),
     )
-    tiles = max(len(inputs[1]) - 1, 1)
+    tiles = max(len(start) - 1, 1)
     threads = max(1, min(numba.get_num_threads(), tiles))
 
     def run(first_tile: int) -> None:

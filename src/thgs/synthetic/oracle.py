@@ -172,14 +172,11 @@ class OracleConfig:
                 "OracleConfig.context_radius", f"must be ≥ 1 pixel, got {self.context_radius}"
             )
 
-    def rate(self, name: str) -> float:
-        return getattr(self.rates, name) * self.severity
-
     def faults(self) -> MaskFaults:
         """The fault rates at this severity and the masks' sizes, as :func:`apply_faults` takes
         them."""
         return MaskFaults(
-            FaultRates(**{name: self.rate(name) for name in asdict(self.rates)}),
+            FaultRates(**{name: rate * self.severity for name, rate in asdict(self.rates).items()}),
             max_jitter=self.max_jitter,
             spurious_radius=self.spurious_radius,
             min_split_pixels=self.min_split_pixels,
