@@ -15,6 +15,8 @@ from thgs.cli import entrypoint
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"
+RAY_IDLE_WORKER_MS = 600_000
+"""How long the session's Ray keeps an idle worker (and its imports) alive: the whole session."""
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
@@ -47,7 +49,13 @@ def local_ray():
     from thgs.cluster import connect_ray
 
     assert not ray.is_initialized(), "a test left Ray initialised: the session's would not start"
-    connection = connect_ray(None, num_cpus=2)
+    with pytest.MonkeyPatch.context() as patch:
+        # Ray's raylet kills a worker idle for 1 s while more workers than CPUs exist (the
+        # actors of a preprocessing run count), so each test's tasks started fresh processes
+        # that imported torch and transformers again (ray-project/ray#27863); the raylet
+        # started here reads this from its environment
+        patch.setenv("RAY_idle_worker_killing_time_threshold_ms", str(RAY_IDLE_WORKER_MS))
+        connection = connect_ray(None, num_cpus=2)
     assert connection.started
     _SESSION_RAY.append(connection)
     try:
