@@ -86,7 +86,7 @@ def test_every_setting_round_trips_and_is_reachable_by_set():
         if name.split(".")[-1] not in ("backend", "precision"):
             assert FieldConfig.from_json(config.to_json()) == config, name
         names.append(name)
-    assert len(names) == 66  # every setting of every stage (update when one is added)
+    assert len(names) == 67  # every setting of every stage (update when one is added)
 
 
 def test_set_takes_plain_text_for_choices():

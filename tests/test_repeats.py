@@ -12,7 +12,7 @@ import torch
 from thgs import Gaussians
 from thgs.errors import InputError
 from thgs.hierarchy import RegionLevels, RepeatConfig, group_repeated_parts
-from thgs.hierarchy.repeats import repeated_part_pairs
+from thgs.hierarchy.repeats import repeated_part_pairs, residual_part_features
 
 
 def brute_force_pairs(touching, objects, features, config):
@@ -155,3 +155,87 @@ def test_bad_input_is_named():
     for fields in ({"similarity": 0.0}, {"similarity": 1.5}, {"margin": -0.1}, {"neighbors": 1}):
         with pytest.raises(InputError, match="RepeatConfig"):
             RepeatConfig(**fields)
+
+
+def test_residual_features_match_a_hand_computation():
+    rng = np.random.default_rng(3)
+    parts = unit(*rng.normal(size=(6, 5)))
+    parts[4] = 0.0  # never seen
+    whole = unit(*rng.normal(size=(2, 5)))
+    whole[1] = 0.0  # an object never seen: nothing is projected out of its parts
+    objects = np.array([0, 0, 0, 1, 1, 1])
+    found = residual_part_features(parts, whole, objects)
+    mean = parts[[0, 1, 2, 3, 5]].mean(axis=0)
+    for r in range(6):
+        if r == 4:
+            np.testing.assert_array_equal(found[r], 0.0)
+            continue
+        centred = (parts[r] - mean) / np.linalg.norm(parts[r] - mean)
+        if objects[r] == 0:
+            axis = (whole[0] - mean) / np.linalg.norm(whole[0] - mean)
+            centred = centred - (centred @ axis) * axis
+        np.testing.assert_allclose(found[r], centred / np.linalg.norm(centred), atol=1e-12)
+    # a part that looks exactly like its object keeps nothing, and joins nothing
+    alike = residual_part_features(np.stack([whole[0], parts[1]]), whole[:1], np.zeros(2, int))
+    np.testing.assert_array_equal(alike[0], 0.0)
+
+
+def table_in_a_room() -> tuple[Gaussians, RegionLevels]:
+    """:func:`table` (object 0: units 0–4) and six more parts of 10 points each, far apart, of a
+    second object (units 5–10): a scene's parts are not all legs."""
+    gaussians, units = table()
+    others = [np.full((10, 3), 10.0 * (i + 1)) + np.arange(10)[:, None] * 0.1 for i in range(6)]
+    means = np.concatenate([gaussians.means.numpy(), *others])
+    units = np.concatenate([units, np.repeat(np.arange(5, 11), 10)])
+    objects = np.array([0] * 5 + [1] * 6)
+    return gaussians_at(means), levels_of(units, objects)
+
+
+def clip_like_features(rng: np.random.Generator, drift: float, same_leg_name: bool = False):
+    """Part and object features of :func:`table_in_a_room` as CLIP-like crops give them: every
+    part ``drift`` its object's look and the rest its own name, plus noise, then pulled towards
+    one direction all crops share (``normalize(0.15 f + 0.85 u)``). With ``same_leg_name`` the
+    legs look like the top (one name for all five)."""
+    names = unit(*rng.normal(size=(11, 32)))  # table, room, top, leg, six other part names
+    shared = unit(rng.normal(size=32))[0]
+
+    def crop(name: np.ndarray) -> np.ndarray:
+        look = unit(name + rng.normal(scale=0.05, size=32))[0]
+        return unit(0.15 * look + 0.85 * shared)[0]
+
+    leg = names[2] if same_leg_name else names[3]
+    parts = [crop((1 - drift) * names[2] + drift * names[0])]
+    parts += [crop((1 - drift) * leg + drift * names[0]) for _ in range(4)]
+    parts += [crop((1 - drift) * names[5 + i] + drift * names[1]) for i in range(6)]
+    return np.stack(parts), np.stack([crop(names[0]), crop(names[1])])
+
+
+def test_clip_like_legs_are_grouped_by_their_residuals_not_by_their_features():
+    gaussians, merged = table_in_a_room()
+    legs_one_part = np.array([0, 1, 1, 1, 1, 2, 3, 4, 5, 6, 7])[merged.labels[:, 1]]
+    residual = RepeatConfig(compare="residual", similarity=0.4, margin=0.2)
+    for seed in range(5):
+        parts, objects = clip_like_features(np.random.default_rng(seed), drift=0.6)
+        # the raw features are all alike: no difference reaches the margin
+        assert (parts @ parts.T).min() > 0.95
+        raw = group_repeated_parts(gaussians, merged, parts)
+        np.testing.assert_array_equal(raw.labels, merged.labels)
+        grouped = group_repeated_parts(gaussians, merged, parts, residual, object_features=objects)
+        np.testing.assert_array_equal(grouped.labels[:, 2], legs_one_part)
+    # legs that look like the top they hang from are not a repeated part
+    parts, objects = clip_like_features(np.random.default_rng(0), 0.6, same_leg_name=True)
+    same = group_repeated_parts(gaussians, merged, parts, residual, object_features=objects)
+    np.testing.assert_array_equal(same.labels, merged.labels)
+
+
+def test_residual_comparison_needs_the_object_features():
+    gaussians, units = table()
+    merged = levels_of(units, np.zeros(5, dtype=np.int64))
+    features = np.concatenate([unit([1, 0, 0]), LEG_FEATURES])
+    residual = RepeatConfig(compare="residual")
+    with pytest.raises(InputError, match=r"object_features: must be \[R_3, D\] = \[1, 3\]"):
+        group_repeated_parts(gaussians, merged, features, residual)
+    with pytest.raises(InputError, match="object_features"):
+        group_repeated_parts(gaussians, merged, features, residual, object_features=np.ones((2, 3)))
+    with pytest.raises(InputError, match=r"RepeatConfig\.compare: must be 'raw' or 'residual'"):
+        RepeatConfig(compare="centred")  # type: ignore[arg-type]

@@ -554,7 +554,12 @@ def describe_levels(
         before = levels.labels[:, 2]
         shared = merged.neighbors if config.repeats.neighbors == config.merge.neighbors else None
         levels = group_repeated_parts(
-            lifted.gaussians, levels, features[1][0], config.repeats, neighbors=shared
+            lifted.gaussians,
+            levels,
+            features[1][0],
+            config.repeats,
+            neighbors=shared,
+            object_features=features[2][0],
         )
         timings["repeats"] = time.perf_counter() - started
         logger.info("merge repeats: %.2f s", timings["repeats"])

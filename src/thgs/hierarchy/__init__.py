@@ -12,7 +12,12 @@ from thgs.hierarchy.affinity import MaskEvidence, Source, mask_evidence, pair_af
 from thgs.hierarchy.coherence import split_incoherent
 from thgs.hierarchy.levels import LEVEL_NAMES, RegionLevels
 from thgs.hierarchy.merge import MergeConfig, MergeResult, merge_levels, renumber_by_units
-from thgs.hierarchy.repeats import RepeatConfig, group_repeated_parts, repeated_part_pairs
+from thgs.hierarchy.repeats import (
+    RepeatConfig,
+    group_repeated_parts,
+    repeated_part_pairs,
+    residual_part_features,
+)
 
 __all__ = [
     "LEVEL_NAMES",
@@ -31,6 +36,7 @@ __all__ = [
     "pair_affinity",
     "renumber_by_units",
     "repeated_part_pairs",
+    "residual_part_features",
     "split_incoherent",
     "unit_graph",
 ]
