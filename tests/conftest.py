@@ -16,7 +16,7 @@ from thgs.cli import entrypoint
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"
 RAY_IDLE_WORKER_MS = 600_000
-"""How long the session's Ray keeps an idle worker (and its imports) alive: the whole session."""
+"""How long the session's Ray keeps an idle worker (and its imports) alive: past its tests."""
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:

@@ -196,7 +196,7 @@ def clip_like_features(rng: np.random.Generator, drift: float, same_leg_name: bo
     part ``drift`` its object's look and the rest its own name, plus noise, then pulled towards
     one direction all crops share (``normalize(0.15 f + 0.85 u)``). With ``same_leg_name`` the
     legs look like the top (one name for all five)."""
-    names = unit(*rng.normal(size=(11, 32)))  # table, room, top, leg, six other part names
+    names = unit(*rng.normal(size=(10, 32)))  # table, room, top, leg, six other part names
     shared = unit(rng.normal(size=32))[0]
 
     def crop(name: np.ndarray) -> np.ndarray:
@@ -206,14 +206,14 @@ def clip_like_features(rng: np.random.Generator, drift: float, same_leg_name: bo
     leg = names[2] if same_leg_name else names[3]
     parts = [crop((1 - drift) * names[2] + drift * names[0])]
     parts += [crop((1 - drift) * leg + drift * names[0]) for _ in range(4)]
-    parts += [crop((1 - drift) * names[5 + i] + drift * names[1]) for i in range(6)]
+    parts += [crop((1 - drift) * names[4 + i] + drift * names[1]) for i in range(6)]
     return np.stack(parts), np.stack([crop(names[0]), crop(names[1])])
 
 
 def test_clip_like_legs_are_grouped_by_their_residuals_not_by_their_features():
     gaussians, merged = table_in_a_room()
     legs_one_part = np.array([0, 1, 1, 1, 1, 2, 3, 4, 5, 6, 7])[merged.labels[:, 1]]
-    residual = RepeatConfig(compare="residual", similarity=0.4, margin=0.2)
+    residual = RepeatConfig(compare="residual", similarity=0.3, margin=0.2)
     for seed in range(5):
         parts, objects = clip_like_features(np.random.default_rng(seed), drift=0.6)
         # the raw features are all alike: no difference reaches the margin

@@ -62,7 +62,7 @@ class RepeatConfig:
             (8, as the merging).
         compare: the cosines of the level-2 features as they are (``"raw"``) or of their
             residuals within their object (``"residual"``, :func:`residual_part_features`;
-            measured with ``similarity`` 0.4 and ``margin`` 0.2, docs/build.md).
+            measured with ``similarity`` 0.3 and ``margin`` 0.2, docs/build.md).
     """
 
     enabled: bool = True
@@ -140,9 +140,10 @@ def repeated_part_pairs(
     return pairs.reshape(-1, 2).astype(np.int64)
 
 
-def _unit_rows(vectors: np.ndarray) -> np.ndarray:
+def _unit_rows(vectors: np.ndarray, shortest: float = 0.0) -> np.ndarray:
+    """The rows made unit; rows not longer than ``shortest`` become zero rows."""
     norms = np.linalg.norm(vectors, axis=1, keepdims=True)
-    return np.divide(vectors, norms, out=np.zeros_like(vectors), where=norms > 0)
+    return np.divide(vectors, norms, out=np.zeros_like(vectors), where=norms > shortest)
 
 
 def residual_part_features(
@@ -173,8 +174,7 @@ def residual_part_features(
     direction = np.where(whole_seen[:, None], _unit_rows(whole - mean), 0.0)[objects]
     residual = centred - np.einsum("rd,rd->r", centred, direction)[:, None] * direction
     # what is left of a part lying along its object's direction is rounding: nothing
-    residual[np.linalg.norm(residual, axis=1) < 1e-9] = 0.0
-    return np.where(seen[:, None], _unit_rows(residual), 0.0)
+    return np.where(seen[:, None], _unit_rows(residual, shortest=1e-9), 0.0)
 
 
 def group_repeated_parts(
