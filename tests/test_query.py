@@ -147,6 +147,9 @@ def test_paper_mode_always_selects_something():
         {"descend": -0.1},
         {"siblings": 1.5},
         {"min_score": float("nan")},
+        {"min_part_score": float("inf")},
+        {"part_lead": -0.1},
+        {"part_lead": float("nan")},
     ],
 )
 def test_invalid_query_configs_are_refused(changes):
@@ -483,17 +486,57 @@ def test_auto_abstains_below_the_scene_null():
     null = fq.null_model(centred=True)
     best = max(float(fq.centred_similarity(["red"], k)[0].max()) for k in (1, 2, 3))
     score = float(null.score(best))
-    kept = fq.select(["red"], fq.with_config(min_score=score - 0.01))[0]
+    below, above = (
+        fq.with_config(min_score=score + change, min_part_score=score + change)
+        for change in (-0.01, 0.01)
+    )
+    kept = fq.select(["red"], below)[0]
     assert not kept.empty and kept.reason is None
-    dropped = fq.select(["red"], fq.with_config(min_score=score + 0.01))[0]
+    dropped = fq.select(["red"], above)[0]
     assert dropped.empty and not dropped.gaussians.any()
     assert dropped.reason == (
         f"nothing relevant to 'red': the best region is {score:.2f} standard deviations above "
         f"what ordinary names reach in this scene, below the {score + 0.01:.2f} needed"
     )
     # a minimum relevancy given: the relevancy decides instead
-    relevant = fq.select(["red"], fq.with_config(min_score=score + 0.01, min_relevancy=0.5))[0]
+    relevant = fq.select(["red"], replace(above, min_relevancy=0.5))[0]
     assert not relevant.empty
+
+
+def test_a_part_that_stands_out_from_its_parent_needs_a_lower_score():
+    # sub-parts 0, 1 in part 0; parts 0, 1 in object 0; the null: mean 0, spread 0.1, so a
+    # cosine c scores 10 c, and the part lead 0.5 is a cosine 0.05 above the parent's
+    parents = (np.array([0, 0]), np.array([0, 0]))
+    null = NullModel(0.0, 0.1)
+    everything = {1: np.array([0, 1]), 2: np.array([0, 1]), 3: np.array([0])}
+
+    def choose(cosines, candidates=everything, **settings):
+        scores = {k: np.full(len(c), 0.9) for k, c in cosines.items()}
+        return select_auto(scores, cosines, candidates, parents=parents, null=null, **settings)
+
+    specific = {1: np.array([0.12, 0.0]), 2: np.array([0.05, 0.0]), 3: np.array([0.04])}
+    diffuse = {1: np.array([0.12, 0.0]), 2: np.array([0.1, 0.0]), 3: np.array([0.1])}
+    # the sub-part scores 1.2: above its part by 0.07 it needs min(1.3, 1.05); by 0.02, 1.3
+    chosen = choose(specific)
+    assert (chosen.best_score, chosen.needed_score) == (pytest.approx(1.2), 1.05)
+    assert [r[:2] for r in chosen.regions] == [(1, 0)]
+    abstained = choose(diffuse)
+    assert abstained.regions == () and abstained.needed_score == 1.3
+    # a part lead of 0.8 (0.08) is more than the sub-part's 0.07
+    assert choose(specific, part_lead=0.8).needed_score == 1.3
+    # a parent that is no candidate cannot be stood out from
+    alone = {1: np.array([0, 1]), 2: np.array([1]), 3: np.array([0])}
+    assert choose(specific, alone).needed_score == 1.3
+    # min_score below min_part_score: min_score is enough for every region
+    assert choose(specific, min_score=0.5).needed_score == 0.5
+    # an object has no parent: a best object needs min_score
+    whole = {1: np.array([0.0, 0.0]), 2: np.array([0.0, 0.0]), 3: np.array([0.12])}
+    assert choose(whole).needed_score == 1.3 and choose(whole).regions == ()
+    # without the hierarchy (the flat rule) nothing has a parent
+    flat = select_auto(
+        {k: np.full(len(c), 0.9) for k, c in specific.items()}, specific, everything, null=null
+    )
+    assert flat.needed_score == 1.3 and flat.regions == ()
 
 
 def test_select_auto_by_hand():

@@ -47,7 +47,13 @@ class QueryConfig:
             cosine's distance above the scene's null in units of the null's spread (the best
             cosines of the generic :data:`thgs.confidence.NULL_PHRASES`, read the same way), is
             below this. Used when ``min_relevancy`` is None; a scene without a null falls back
-            to the space's relevancy threshold (:func:`default_threshold`).
+            to the space's relevancy threshold (:func:`default_threshold`). 1.3, chosen on
+            synthetic seeds 0–4 with ``min_part_score`` and ``part_lead`` (docs/query.md).
+        min_part_score: auto mode, hierarchical: the score that is enough (when below
+            ``min_score``) for a best region that is a part or sub-part standing out from its
+            parent: its cosine above the parent's by at least ``part_lead`` times the null's
+            spread. A query matched that specifically is about something there.
+        part_lead: see ``min_part_score``.
         level: level and threshold modes: the level searched (1 sub-parts, 2 parts, 3 objects).
         top: level mode: how many regions (1).
         threshold: threshold mode only: the relevancy a region needs (None:
@@ -71,7 +77,9 @@ class QueryConfig:
     descend: float = 0.05
     siblings: float = 0.6
     centred: bool = True
-    min_score: float = 1.05
+    min_score: float = 1.3
+    min_part_score: float = 1.05
+    part_lead: float = 0.5
     level: int = 3
     top: int = 1
     threshold: float | None = None
@@ -116,8 +124,13 @@ class QueryConfig:
             raise InputError("QueryConfig.descend", f"must be ≥ 0, got {self.descend}")
         if not 0.0 <= self.siblings <= 1.0:
             raise InputError("QueryConfig.siblings", f"must be in [0, 1], got {self.siblings}")
-        if not np.isfinite(self.min_score):
-            raise InputError("QueryConfig.min_score", f"must be a number, got {self.min_score}")
+        for name in ("min_score", "min_part_score"):
+            if not np.isfinite(getattr(self, name)):
+                raise InputError(
+                    f"QueryConfig.{name}", f"must be a number, got {getattr(self, name)}"
+                )
+        if not 0.0 <= self.part_lead < np.inf:
+            raise InputError("QueryConfig.part_lead", f"must be a number ≥ 0, got {self.part_lead}")
         return self
 
     @property

@@ -214,11 +214,13 @@ class FieldQuery:
                         siblings=config.siblings,
                         null=judge,
                         min_score=config.min_score,
+                        min_part_score=config.min_part_score,
+                        part_lead=config.part_lead,
                     )
                     regions = choice.regions
-                    if not regions and choice.best_score is not None:
+                    if not regions and choice.needed_score is not None:
                         reason = abstain_reason(
-                            text, choice.best_score, config.min_score, score=True
+                            text, choice.best_score, choice.needed_score, score=True
                         )
                     elif not regions:
                         reason = abstain_reason(text, choice.best_relevancy, cut)

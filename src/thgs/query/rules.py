@@ -167,11 +167,14 @@ class AutoChoice:
         best_relevancy: the highest relevancy among the candidates (0 when there are none).
         best_score: the best candidate's score against the scene's null (None when the
             relevancy decided, or there is no candidate).
+        needed_score: the score the best candidate needed (None when the relevancy decided, or
+            there is no candidate).
     """
 
     regions: tuple[tuple[int, int, float], ...]
     best_relevancy: float
     best_score: float | None = None
+    needed_score: float | None = None
 
 
 def _children(upward: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -228,7 +231,9 @@ def select_auto(
     descend: float = 0.05,
     siblings: float = 0.6,
     null: NullModel | None = None,
-    min_score: float = 1.05,
+    min_score: float = 1.3,
+    min_part_score: float = 1.05,
+    part_lead: float = 0.5,
 ) -> AutoChoice:
     """The automatic selection of one query (module docstring, docs/query.md).
 
@@ -255,8 +260,15 @@ def select_auto(
             candidate not to be taken whole.
         siblings: share of the best child's rise a child must reach to be descended into.
         null: the scene's null of the same cosines; with it, the query is abstained from when
-            the best candidate's score is below ``min_score`` (else the relevancy rule).
+            the best candidate's score is below ``min_score`` (else the relevancy rule), or
+            below ``min(min_score, min_part_score)`` when the best candidate is a part or
+            sub-part that stands out from its parent (a candidate too): its cosine above the
+            parent's by at least ``part_lead`` times the null's spread. A query matched that
+            specifically is about something there; one matched as much by the region around
+            it (a giraffe by a teddy bear and all its pieces) needs more.
         min_score: see ``null``.
+        min_part_score: see ``null`` (read only with ``parents``).
+        part_lead: see ``null``.
     """
     pairs = [(level, int(region)) for level, ids in candidates.items() for region in ids]
     best_relevancy = max((float(scores[level][region]) for level, region in pairs), default=0.0)
@@ -264,11 +276,14 @@ def select_auto(
         return AutoChoice((), best_relevancy)
     cosines = np.array([similarities[level][region] for level, region in pairs])
     best, median = float(cosines.max()), float(np.median(cosines))
-    best_score = None
+    best_score = needed = None
     if null is not None:
         best_score = float(null.score(best))
-        if best_score < min_score:
-            return AutoChoice((), best_relevancy, best_score)
+        needed = min_score
+        if parents is not None and _stands_out(pairs, cosines, parents, part_lead * null.std):
+            needed = min(min_score, min_part_score)
+        if best_score < needed:
+            return AutoChoice((), best_relevancy, best_score, needed)
     elif best_relevancy < threshold:
         return AutoChoice((), best_relevancy)
     spread = best - median
@@ -284,7 +299,21 @@ def select_auto(
         picked = _descend(own, parents, cut, descend * spread, siblings)
     order = sorted((-float(similarities[level][region]), level, region) for level, region in picked)
     regions = tuple((level, region, float(scores[level][region])) for _, level, region in order)
-    return AutoChoice(regions, best_relevancy, best_score)
+    return AutoChoice(regions, best_relevancy, best_score, needed)
+
+
+def _stands_out(
+    pairs: list[tuple[int, int]], cosines: np.ndarray, parents: Sequence[np.ndarray], lead: float
+) -> bool:
+    """Whether the best of ``pairs`` (``(level, region)`` candidates with ``cosines``; the first
+    on ties) is a part or sub-part whose parent is a candidate ``lead`` or more below it."""
+    index = int(np.argmax(cosines))
+    level, region = pairs[index]
+    if level == 3:
+        return False
+    parent = (level + 1, int(parents[level - 1][region]))
+    above = {pair: float(c) for pair, c in zip(pairs, cosines)}.get(parent)
+    return above is not None and float(cosines[index]) - above >= lead
 
 
 def abstain_reason(text: str, best: float, threshold: float, *, score: bool = False) -> str:
