@@ -346,6 +346,7 @@ def test_build_from_the_splat_alone_scores_like_the_real_cameras(
                 dataset=small_dataset,
                 field=field,
                 out=field.with_suffix(".json"),
+                protocols=("hierarchy", "lerf"),
                 scene=small_dataset,
             ),
             find_ground_truth(small_dataset),
