@@ -17,7 +17,14 @@ from thgs.eval.metrics import best_iou
 from thgs.features import region_features
 from thgs.field import load_field, save_field, scene_fingerprint
 from thgs.hierarchy import MergeConfig
-from thgs.pipeline import FieldConfig, build_field, build_levels, lift_scene
+from thgs.pipeline import (
+    FieldConfig,
+    build_field,
+    build_levels,
+    describe_levels,
+    lift_scene,
+    merge_lifted,
+)
 from thgs.render import RasterConfig
 from thgs.synthetic import OracleConfig, generate_scene, preset
 
@@ -209,11 +216,12 @@ def test_with_clip_like_features_only_the_residuals_group_the_legs():
     guidance = oracle_views(synthetic, synthetic.hierarchy, oracle)
     config = FieldConfig.lerf()
     lifted = lift_scene(synthetic, guidance, config.superpoints.lift)
+    merged = merge_lifted(lifted, config)  # the grouping comes after: one partition for both
     legs = synthetic.hierarchy.names[2].index("table legs")
     scores = {}
     for compare, similarity, margin in (("raw", 0.8, 0.1), ("residual", 0.3, 0.2)):
         repeats = replace(config.repeats, compare=compare, similarity=similarity, margin=margin)
-        built = build_levels(lifted, guidance, replace(config, repeats=repeats))
+        built = describe_levels(merged, lifted, guidance, replace(config, repeats=repeats))
         parts = built.levels.labels[:, 2]
         scores[compare] = best_iou(parts, synthetic.hierarchy.labels[:, 2])[legs]
     assert scores["raw"] <= 0.3 and scores["residual"] >= 0.8
