@@ -4,6 +4,7 @@ tokenizer built here, the offline MiniLM model, and the space checks."""
 from __future__ import annotations
 
 import json
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -94,6 +95,28 @@ def test_minilm_encoder_is_offline_and_unit_length():
     # related words are closer than unrelated ones
     cup, giraffe = encoder.encode(["cup", "giraffe"])
     assert rows[0] @ cup > rows[0] @ giraffe
+
+
+def test_minilm_encoders_share_one_loaded_model(monkeypatch):
+    sentence_transformers = pytest.importorskip("sentence_transformers")
+    loads = []
+    real = sentence_transformers.SentenceTransformer
+
+    def counted(*args, **kwargs):
+        loads.append(kwargs["device"])
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(sentence_transformers, "SentenceTransformer", counted)
+    # a device string no other test uses: its model is not loaded yet in this process
+    encoders = [MiniLMEncoder(device="cpu:0") for _ in range(4)]
+    assert loads == ["cpu:0"]
+    # the encoders take turns on the shared model: the same phrases from four threads at once
+    phrases = [f"a thing numbered {i}" for i in range(12)]
+    with ThreadPoolExecutor(4) as pool:
+        rows = list(pool.map(lambda encoder: encoder.encode(phrases), encoders))
+    for other in rows[1:]:
+        np.testing.assert_array_equal(rows[0], other)
+    np.testing.assert_array_equal(rows[0], MiniLMEncoder().encode(phrases))
 
 
 def test_space_check_names_both_spaces(tiny_clip):

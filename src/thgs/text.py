@@ -24,8 +24,9 @@ import json
 import logging
 import os
 import re
+import threading
 from pathlib import Path
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -121,14 +122,19 @@ class TextEncoder(Protocol):
 _MINILM_VECTORS: dict[tuple[str, str], dict[str, np.ndarray]] = {}
 """Per (model folder, device): phrase → its [384] float32 unit vector (:class:`MiniLMEncoder`)."""
 
+_MINILM_MODELS: dict[tuple[str, str], tuple[Any, threading.Lock]] = {}
+"""Per (model folder, device): the loaded model and the lock its encodings take (a fast
+tokenizer refuses to be used by two threads at once)."""
+
 
 class MiniLMEncoder:
     """all-MiniLM-L6-v2 through sentence-transformers, on the CPU unless told otherwise.
 
     Each phrase is encoded on its own (no padding to a batch), so a phrase's vector never depends
-    on which other phrases were encoded with it; results are cached per phrase, and the cache is
-    shared by every encoder of the same model folder and device in the process (a suite or a
-    test session encodes the 80 null phrases once, not once per field).
+    on which other phrases were encoded with it; results are cached per phrase. The loaded model
+    and the cache are shared by every encoder of the same model folder and device in the process
+    (a suite or a test session loads the model once and encodes the 80 null phrases once, not
+    once per field); encodings through the shared model take turns.
 
     Args:
         model_path: a sentence-transformers model folder; default the copy shipped in the PyPI
@@ -162,10 +168,14 @@ class MiniLMEncoder:
             raise ThgsError(
                 f"{model_path}: not a sentence-transformers model folder (no modules.json)"
             )
-        os.environ.setdefault("HF_HUB_OFFLINE", "1")
-        self._model = quietly(
-            lambda: SentenceTransformer(str(model_path), device=device, local_files_only=True)
-        )
+        key = (str(model_path.resolve()), str(device))
+        if key not in _MINILM_MODELS:
+            os.environ.setdefault("HF_HUB_OFFLINE", "1")
+            loaded = quietly(
+                lambda: SentenceTransformer(str(model_path), device=device, local_files_only=True)
+            )
+            _MINILM_MODELS[key] = (loaded, threading.Lock())
+        self._model, self._lock = _MINILM_MODELS[key]
         model = self._model
         dimension = (
             model.get_embedding_dimension
@@ -173,19 +183,20 @@ class MiniLMEncoder:
             else model.get_sentence_embedding_dimension  # sentence-transformers < 5
         )
         self.dim = int(dimension())
-        self._cache = _MINILM_VECTORS.setdefault((str(model_path.resolve()), str(device)), {})
+        self._cache = _MINILM_VECTORS.setdefault(key, {})
         logger.info("loaded text encoder %s (%d-D) from %s", self.space, self.dim, model_path)
 
     def encode(self, texts: list[str] | tuple[str, ...]) -> np.ndarray:
         """[len(texts), 384] float32 unit rows, one per phrase."""
         for text in dict.fromkeys(texts):
             if text not in self._cache:
-                vector = self._model.encode(
-                    [text],
-                    normalize_embeddings=True,
-                    convert_to_numpy=True,
-                    show_progress_bar=False,  # library code shows no progress bars
-                )[0]
+                with self._lock:
+                    vector = self._model.encode(
+                        [text],
+                        normalize_embeddings=True,
+                        convert_to_numpy=True,
+                        show_progress_bar=False,  # library code shows no progress bars
+                    )[0]
                 self._cache[text] = vector.astype(np.float32)
         if not texts:
             return np.zeros((0, self.dim), dtype=np.float32)
