@@ -276,11 +276,19 @@ def select_auto(
         return AutoChoice((), best_relevancy)
     cosines = np.array([similarities[level][region] for level, region in pairs])
     best, median = float(cosines.max()), float(np.median(cosines))
+    own = None  # with parents: level → each region's cosine, −inf where it is no candidate
+    if parents is not None:
+        objects = max(int(parents[1].max(initial=-1)) + 1, len(similarities.get(3, ())))
+        sizes = {1: len(parents[0]), 2: len(parents[1]), 3: objects}
+        own = {level: np.full(size, -np.inf) for level, size in sizes.items()}
+        for (level, region), cosine in zip(pairs, cosines):
+            own[level][region] = cosine
     best_score = needed = None
     if null is not None:
         best_score = float(null.score(best))
         needed = min_score
-        if parents is not None and _stands_out(pairs, cosines, parents, part_lead * null.std):
+        top = pairs[int(np.argmax(cosines))]  # the first on ties
+        if own is not None and _stands_out(own, parents, *top, part_lead * null.std):
             needed = min(min_score, min_part_score)
         if best_score < needed:
             return AutoChoice((), best_relevancy, best_score, needed)
@@ -288,14 +296,9 @@ def select_auto(
         return AutoChoice((), best_relevancy)
     spread = best - median
     cut = best - extent * spread
-    if parents is None:
+    if own is None:
         picked = [(level, region) for (level, region), c in zip(pairs, cosines) if c >= cut]
     else:
-        objects = max(int(parents[1].max(initial=-1)) + 1, len(similarities.get(3, ())))
-        sizes = {1: len(parents[0]), 2: len(parents[1]), 3: objects}
-        own = {level: np.full(size, -np.inf) for level, size in sizes.items()}
-        for (level, region), cosine in zip(pairs, cosines):
-            own[level][region] = cosine
         picked = _descend(own, parents, cut, descend * spread, siblings)
     order = sorted((-float(similarities[level][region]), level, region) for level, region in picked)
     regions = tuple((level, region, float(scores[level][region])) for _, level, region in order)
@@ -303,17 +306,14 @@ def select_auto(
 
 
 def _stands_out(
-    pairs: list[tuple[int, int]], cosines: np.ndarray, parents: Sequence[np.ndarray], lead: float
+    own: dict[int, np.ndarray], parents: Sequence[np.ndarray], level: int, region: int, lead: float
 ) -> bool:
-    """Whether the best of ``pairs`` (``(level, region)`` candidates with ``cosines``; the first
-    on ties) is a part or sub-part whose parent is a candidate ``lead`` or more below it."""
-    index = int(np.argmax(cosines))
-    level, region = pairs[index]
+    """Whether the level-``level`` region ``region`` is a part or sub-part whose parent is a
+    candidate (a finite cosine in ``own``) ``lead`` or more below it."""
     if level == 3:
         return False
-    parent = (level + 1, int(parents[level - 1][region]))
-    above = {pair: float(c) for pair, c in zip(pairs, cosines)}.get(parent)
-    return above is not None and float(cosines[index]) - above >= lead
+    above = own[level + 1][int(parents[level - 1][region])]
+    return bool(np.isfinite(above)) and float(own[level][region] - above) >= lead
 
 
 def abstain_reason(text: str, best: float, threshold: float, *, score: bool = False) -> str:
