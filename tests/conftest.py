@@ -2,6 +2,17 @@
 
 from __future__ import annotations
 
+import os
+
+# OpenMP's threads (torch's here, in subprocesses and in Ray's workers) sleep while they wait
+# instead of spinning: with other tests running beside them (``-n``) spinning threads took the
+# cores from the work, and the Ray tests took 2.8 times as long next to one busy process (1.5
+# times with this). Set before anything loads OpenMP, which reads it once.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import collections
+import contextlib
+import functools
 import math
 import sys
 from pathlib import Path
@@ -19,20 +30,99 @@ RAY_IDLE_WORKER_MS = 600_000
 """How long the session's Ray keeps an idle worker (and its imports) alive: past its tests."""
 
 
+DISTRIBUTED = bool(os.environ.get("PYTEST_XDIST_WORKER"))
+"""This process is one of pytest-xdist's workers (``-n``): other workers share its cores."""
+RAY_UNIT = "ray"
+"""The unit of work that holds every module using Ray under ``-n``: sent last."""
+
+
+@functools.cache
+def modules_using_ray() -> frozenset[str]:
+    """The test modules that ask for the session's Ray (their source names ``local_ray``), as
+    pytest's node ids spell them (``tests/test_suite.py``)."""
+    here = Path(__file__).parent
+    return frozenset(
+        f"{here.name}/{path.name}"
+        for path in here.glob("test_*.py")
+        if "local_ray" in path.read_text(encoding="utf-8")
+    )
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """A worker of a distributed run computes on one thread (numba's kernels, torch's
+    operators) while other workers use the other cores: threads that wait for each other across
+    busy cores cost more than they bring. Tests of parallel paths set their own number
+    (:func:`numba_threads`); subprocesses and Ray's workers keep the machine's defaults."""
+    if DISTRIBUTED:
+        import numba
+
+        numba.set_num_threads(1)
+        torch.set_num_threads(1)
+
+
+def pytest_xdist_make_scheduler(config: pytest.Config, log):
+    """How ``-n`` shares the suite among pytest-xdist's workers: every module is one unit of
+    work (its module fixtures are made once) and the modules that use Ray together are one
+    unit, sent in the order :func:`pytest_collection_modifyitems` gives. pytest-xdist's own
+    ``loadgroup`` cannot group them: it marks groups in the node ids, which pytest 9.2 no
+    longer lets a plugin change (pytest-dev/pytest-xdist#1386)."""
+    from xdist.scheduler import LoadScopeScheduling
+
+    config.option.loadscopereorder = False  # keep the collection's order
+    with_ray = modules_using_ray()
+
+    class ModulesWithRayTogether(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            module = nodeid.split("::", 1)[0]
+            return RAY_UNIT if module in with_ray else module
+
+    return ModulesWithRayTogether(config, log)
+
+
+@contextlib.contextmanager
+def numba_threads(count: int):
+    """numba's kernels on ``count`` threads (at most ``NUMBA_NUM_THREADS``) while inside."""
+    import numba
+
+    before = numba.get_num_threads()
+    numba.set_num_threads(min(count, numba.config.NUMBA_NUM_THREADS))
+    try:
+        yield
+    finally:
+        numba.set_num_threads(before)
+
+
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     """Tests on a local Ray or in a browser are slow by nature: every test that uses a
     ``local_ray`` fixture is marked ``ray``, and every ``ray`` or ``browser`` test ``slow``.
 
-    The modules holding Ray tests run last, each whole and in its order (so their module
-    fixtures are made once): the session's one Ray, once started, keeps processes alive on the
-    machine's cores until the session ends, and no other test should run beside them."""
+    The modules that use Ray (:func:`modules_using_ray`) run last, one after another, each whole
+    and in its order (so their module fixtures are made once): the session's one Ray, once
+    started, keeps processes alive on the machine's cores until the session ends, and other
+    tests beside it slow it down several times over (OpenMP threads waiting on busy cores).
+    Under ``-n`` (:func:`pytest_xdist_make_scheduler`) the other modules go out in the order of
+    their number of slow tests, most first, so that the workers end on short modules and the
+    Ray unit starts with little else still running."""
     for item in items:
         if "local_ray" in getattr(item, "fixturenames", ()):
             item.add_marker(pytest.mark.ray)
         if item.get_closest_marker("ray") or item.get_closest_marker("browser"):
             item.add_marker(pytest.mark.slow)
-    with_ray = {item.path for item in items if item.get_closest_marker("ray")}
-    items.sort(key=lambda item: item.path in with_ray)  # stable: the order is kept otherwise
+    with_ray = modules_using_ray()
+    missed = {_module(item) for item in items if item.get_closest_marker("ray")} - with_ray
+    assert not missed, f"{sorted(missed)}: Ray tests in a module whose source never names local_ray"
+    slow = collections.Counter(_module(item) for item in items if item.get_closest_marker("slow"))
+
+    # stable: the collection's order is kept otherwise
+    def order(item: pytest.Item) -> tuple[bool, int]:
+        module = _module(item)
+        return module in with_ray, -slow[module] if DISTRIBUTED and module not in with_ray else 0
+
+    items.sort(key=order)
+
+
+def _module(item: pytest.Item) -> str:
+    return item.nodeid.split("::", 1)[0]
 
 
 _SESSION_RAY: list = []

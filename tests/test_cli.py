@@ -150,6 +150,19 @@ def test_build_names_missing_guidance(small_dataset, tmp_path, capsys):
     assert not (tmp_path / "f.thgs").exists()
 
 
+def test_a_long_path_stays_whole_on_one_error_line(small_dataset, tmp_path, capsys):
+    """The console never breaks a message itself (the terminal wraps it): a path of any length
+    can be copied from the error as it is."""
+    missing = tmp_path / ("a-folder-with-a-long-name-" * 6) / "guidance"
+    code, _, err = run(
+        ["build", str(small_dataset), "-o", str(tmp_path / "f.thgs"), "--guidance", str(missing)],
+        capsys,
+    )
+    assert code == 2 and len(str(missing)) > 160
+    line = err.strip()
+    assert line.startswith("error: ") and "\n" not in line and f" {missing}: " in line
+
+
 @pytest.mark.slow
 def test_demo_builds_queries_and_reports(tmp_path, capsys):
     out = tmp_path / "demo"

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from conftest import numba_threads
 from test_synthetic import _FakeEncoder
 from thgs import Cameras, Gaussians, InputError
 from thgs.guidance import ViewGuidance
@@ -240,7 +241,8 @@ def test_views_in_parallel_equal_views_one_by_one(method):
         _, max_id = render_view(scene, i, (0.5, 0.5, 0.5))
         guidance.append(oracle_guidance(stem, max_id, scene.hierarchy, _FakeEncoder(), config, i))
     lift = LiftConfig(method)
-    together = lift_views(scene.gaussians, scene.cameras, guidance, lift)
+    with numba_threads(2):  # two views at once
+        together = lift_views(scene.gaussians, scene.cameras, guidance, lift)
     for i, view in enumerate(together):
         alone = lift_view(scene.gaussians, scene.cameras.select([i]), guidance[i], i, lift)
         for name in ("gaussians", "labels", "depths", "max_weights"):

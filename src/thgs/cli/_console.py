@@ -8,8 +8,10 @@ from typing import ClassVar
 from rich.console import Console
 from rich.markup import escape
 
-stdout = Console()
-stderr = Console(stderr=True)
+# soft_wrap: rich never breaks a line itself (the terminal wraps it), so a path in a message stays
+# one word to copy, however long, and a log reads the message on one line
+stdout = Console(soft_wrap=True)
+stderr = Console(stderr=True, soft_wrap=True)
 
 
 def warn(message: str) -> None:
