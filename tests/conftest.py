@@ -6,8 +6,8 @@ import os
 
 # OpenMP's threads (torch's here, in subprocesses and in Ray's workers) sleep while they wait
 # instead of spinning: with other tests running beside them (``-n``) spinning threads took the
-# cores from the work, and the Ray tests took 2.8 times as long next to one busy process (1.5
-# times with this). Set before anything loads OpenMP, which reads it once.
+# cores from the work; the Ray tests took 2.8 times as long next to one busy process, 1.5 times
+# with this. Set before anything loads OpenMP, which reads it once.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import collections
@@ -33,7 +33,7 @@ RAY_IDLE_WORKER_MS = 600_000
 DISTRIBUTED = bool(os.environ.get("PYTEST_XDIST_WORKER"))
 """This process is one of pytest-xdist's workers (``-n``): other workers share its cores."""
 RAY_UNIT = "ray"
-"""The unit of work that holds every module using Ray under ``-n``: sent last."""
+"""The unit of work that holds every module using Ray under ``-n``: sent first."""
 
 
 @functools.cache
@@ -96,13 +96,14 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     """Tests on a local Ray or in a browser are slow by nature: every test that uses a
     ``local_ray`` fixture is marked ``ray``, and every ``ray`` or ``browser`` test ``slow``.
 
-    The modules that use Ray (:func:`modules_using_ray`) run last, one after another, each whole
-    and in its order (so their module fixtures are made once): the session's one Ray, once
-    started, keeps processes alive on the machine's cores until the session ends, and other
-    tests beside it slow it down several times over (OpenMP threads waiting on busy cores).
-    Under ``-n`` (:func:`pytest_xdist_make_scheduler`) the other modules go out in the order of
-    their number of slow tests, most first, so that the workers end on short modules and the
-    Ray unit starts with little else still running."""
+    The modules that use Ray (:func:`modules_using_ray`) run one after another, each whole and
+    in its order (so their module fixtures are made once): the session's one Ray, once started,
+    keeps processes alive on the machine's cores until the session ends. In one process they
+    run last, so that no other test runs beside them. Under ``-n``
+    (:func:`pytest_xdist_make_scheduler`) they are one unit of work, sent first (the longest:
+    one worker runs it while the others take the remaining modules), and the other modules
+    follow in the order of their number of slow tests, most first, so that the workers end
+    together on short modules."""
     for item in items:
         if "local_ray" in getattr(item, "fixturenames", ()):
             item.add_marker(pytest.mark.ray)
@@ -116,7 +117,9 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     # stable: the collection's order is kept otherwise
     def order(item: pytest.Item) -> tuple[bool, int]:
         module = _module(item)
-        return module in with_ray, -slow[module] if DISTRIBUTED and module not in with_ray else 0
+        if not DISTRIBUTED:
+            return module in with_ray, 0
+        return module not in with_ray, 0 if module in with_ray else -slow[module]
 
     items.sort(key=order)
 
