@@ -60,6 +60,7 @@ def pytest_configure(config: pytest.Config) -> None:
         torch.set_num_threads(1)
 
 
+@pytest.hookimpl(optionalhook=True)  # pytest-xdist's hook: absent without it
 def pytest_xdist_make_scheduler(config: pytest.Config, log):
     """How ``-n`` shares the suite among pytest-xdist's workers: every module is one unit of
     work (its module fixtures are made once) and the modules that use Ray together are one
