@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import torch
 
+from conftest import numba_threads
 from thgs import Cameras, Gaussians, InputError
 from thgs.render import RasterConfig, project, render, resolve_backend, splat_back, splat_labels
 from thgs.render._reference import ReferenceBackend, dense_weights
@@ -234,12 +235,8 @@ def test_numba_render_is_the_same_with_any_number_of_threads(kind, tile_size):
     config = RasterConfig(tile_size=tile_size, backend="numba")
     outputs = []
     for threads in (1, numba.config.NUMBA_NUM_THREADS):
-        before = numba.get_num_threads()
-        numba.set_num_threads(threads)
-        try:
+        with numba_threads(threads):
             outputs.append(render(gaussians, camera(), features, config=config))
-        finally:
-            numba.set_num_threads(before)
     one, many = outputs
     for name in ("image", "alpha", "depth", "max_id"):
         assert torch.equal(getattr(one, name), getattr(many, name)), name

@@ -119,12 +119,10 @@ class TextEncoder(Protocol):
         ...
 
 
-_MINILM_VECTORS: dict[tuple[str, str], dict[str, np.ndarray]] = {}
-"""Per (model folder, device): phrase → its [384] float32 unit vector (:class:`MiniLMEncoder`)."""
-
-_MINILM_MODELS: dict[tuple[str, str], tuple[Any, threading.Lock]] = {}
-"""Per (model folder, device): the loaded model and the lock its encodings take (a fast
-tokenizer refuses to be used by two threads at once)."""
+_MINILM_MODELS: dict[tuple[str, str], tuple[Any, threading.Lock, dict[str, np.ndarray]]] = {}
+"""Per (model folder, device), for :class:`MiniLMEncoder`: the loaded model, the lock its
+encodings take (a fast tokenizer refuses to be used by two threads at once) and the cache of
+phrase → its [384] float32 unit vector."""
 
 
 class MiniLMEncoder:
@@ -174,8 +172,8 @@ class MiniLMEncoder:
             loaded = quietly(
                 lambda: SentenceTransformer(str(model_path), device=device, local_files_only=True)
             )
-            _MINILM_MODELS[key] = (loaded, threading.Lock())
-        self._model, self._lock = _MINILM_MODELS[key]
+            _MINILM_MODELS[key] = (loaded, threading.Lock(), {})
+        self._model, self._lock, self._cache = _MINILM_MODELS[key]
         model = self._model
         dimension = (
             model.get_embedding_dimension
@@ -183,7 +181,6 @@ class MiniLMEncoder:
             else model.get_sentence_embedding_dimension  # sentence-transformers < 5
         )
         self.dim = int(dimension())
-        self._cache = _MINILM_VECTORS.setdefault(key, {})
         logger.info("loaded text encoder %s (%d-D) from %s", self.space, self.dim, model_path)
 
     def encode(self, texts: list[str] | tuple[str, ...]) -> np.ndarray:
