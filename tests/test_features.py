@@ -66,12 +66,24 @@ def reference_features(labels, level, lifted, guidance, config, regions, centres
                 marks = {i: int(view.labels[row[i], level]) for i in counted}
                 marks = {i: m for i, m in marks.items() if m >= 0}
                 labelled = sum(weigh[i] for i in marks)
+                fit = kept = 0.0
                 for mask in sorted(set(marks.values())):
-                    share = sum(weigh[i] for i, m in marks.items() if m == mask) / labelled
+                    inside = sum(weigh[i] for i, m in marks.items() if m == mask)
+                    share = inside / labelled
                     if share >= config.min_share:
                         total += share * features[mask]
+                        # the mask's counted weight over every Gaussian of the view
+                        everywhere = sum(
+                            float(w) ** power
+                            for w, m in zip(view.max_weights, view.labels[:, level])
+                            if m == mask and w >= config.min_max_weight
+                        )
+                        fit += share * inside / everywhere
+                        kept += share
                 visible = [i for i in counted if view.max_weights[row[i]] > config.visible_weight]
                 weight = sum(weigh[i] for i in visible) / len(members)
+                if kept > 0:
+                    weight *= (fit / kept) ** config.fit_power
             else:
                 used = [i for i in seen if view.max_weights[row[i]] > config.centre_weight]
                 weight = len(used) / len(members)
@@ -335,6 +347,31 @@ def test_faintly_seen_gaussians_weigh_little_by_hand():
     np.testing.assert_allclose(theirs[0], _unit(0.6 * a + 0.4 * b), atol=1e-6)
 
 
+def test_a_view_whose_mask_fits_the_region_weighs_more_by_hand():
+    # a table: leg = Gaussians 0–3 (region 0), top = 4–11 (region 1), all seen well (max w 1).
+    # View 0's mask a holds leg and top (a table's mask): leg's precision 4 / 12; view 1's
+    # mask b holds the leg alone (precision 1) and mask c the top. Each view sees the whole leg
+    # (p = 1), so the reference weighs them alike: f = normalize(a + b); ours (fit, no median
+    # steps) f = normalize(a / 3 + b). The top keeps a in view 0 (precision 8 / 12) and c in
+    # view 1 (precision 1): normalize(2/3 a + c).
+    a, b, c = np.eye(3)
+    labels = np.array([0] * 4 + [1] * 8, dtype=np.int32)
+    view0 = one_level_view(np.arange(12), [0] * 12, [1.0] * 12, level=2)
+    view1 = one_level_view(np.arange(12), [0] * 4 + [1] * 8, [1.0] * 12, level=2)
+    guidance = [guidance_with([a]), guidance_with([b, c], "view_1")]
+    ours = dataclasses.replace(FeatureConfig(), median_steps=0)
+    features, seen = region_features(labels, 2, [view0, view1], guidance, ours)
+    assert seen.all()
+    np.testing.assert_allclose(features[0], _unit(a / 3 + b), atol=1e-6)
+    np.testing.assert_allclose(features[1], _unit(2 / 3 * a + c), atol=1e-6)
+    theirs, _ = region_features(labels, 2, [view0, view1], guidance, ours.as_reference())
+    np.testing.assert_allclose(theirs[0], _unit(a + b), atol=1e-6)
+    # q = 2 squares the leg's precision in view 0
+    squared = dataclasses.replace(ours, fit_power=2.0)
+    features, _ = region_features(labels, 2, [view0, view1], guidance, squared)
+    np.testing.assert_allclose(features[0], _unit(a / 9 + b), atol=1e-6)
+
+
 def smoothed_l1(direction, units, weights, softness):
     """Σ w ρ(‖u − m‖) with ρ(d) = d − ε ln(1 + d/ε): what the median steps minimise."""
     distances = np.linalg.norm(np.asarray(units) - direction, axis=1)
@@ -563,6 +600,7 @@ def test_presets():
     assert (dovs.mode, dovs.centre_weight, dovs.min_visible) == ("centres", 0.01, 0.1)
     authors = FeatureConfig.lerf().as_reference()
     assert (authors.min_max_weight, authors.visibility_power) == (0.0, 0.0)
+    assert (FeatureConfig().fit_power, authors.fit_power) == (1.0, 0.0)
     assert (FeatureConfig().median_steps, authors.median_steps) == (2, 0)
     assert FeatureConfig.three_dovs().as_reference().median_steps == 0
 
@@ -579,6 +617,9 @@ def test_presets():
         {"min_max_weight": 1.0},
         {"visibility_power": -1.0},
         {"visibility_power": math.nan},
+        {"visibility_power": math.inf},
+        {"fit_power": -0.5},
+        {"fit_power": math.inf},
         {"median_steps": -1},
         {"median_steps": 1.5},
         {"median_steps": True},

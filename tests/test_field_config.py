@@ -86,7 +86,7 @@ def test_every_setting_round_trips_and_is_reachable_by_set():
         if name.split(".")[-1] not in ("backend", "precision"):
             assert FieldConfig.from_json(config.to_json()) == config, name
         names.append(name)
-    assert len(names) == 67  # every setting of every stage (update when one is added)
+    assert len(names) == 68  # every setting of every stage (update when one is added)
 
 
 def test_set_takes_plain_text_for_choices():
@@ -255,6 +255,15 @@ def test_a_field_recorded_before_median_steps_took_the_mean_over_views(small_fie
     features = {k: v for k, v in field.config["features"].items() if k != "median_steps"}
     older = dataclasses.replace(field, config={**field.config, "features": features})
     assert recorded_config(older).features == dataclasses.replace(recorded, median_steps=0)
+
+
+def test_a_field_recorded_before_the_fit_weighed_views_by_their_visible_share(small_field):
+    field = load_field(small_field)
+    recorded = recorded_config(field).features
+    assert recorded.fit_power == FeatureConfig().fit_power == 1.0
+    features = {k: v for k, v in field.config["features"].items() if k != "fit_power"}
+    older = dataclasses.replace(field, config={**field.config, "features": features})
+    assert recorded_config(older).features == dataclasses.replace(recorded, fit_power=0.0)
 
 
 def test_the_scene_is_found_relative_to_the_field(small_dataset, small_field, tmp_path):

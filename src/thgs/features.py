@@ -12,8 +12,13 @@ column). Two training-free modes, both the reference's:
   counts only where its ``max w`` reaches ``min_max_weight`` (0.05) and then weighs
   ``(max w)^p`` (``visibility_power`` p = 2) in the shares and in ``p_r^v``. A Gaussian seen only
   through an occluder carries the occluder's mask (a table's legs under its top); counted like a
-  well-seen one it pulls its region's feature towards the occluder's name. The reference counts
-  every labelled Gaussian once (:meth:`FeatureConfig.as_reference`).
+  well-seen one it pulls its region's feature towards the occluder's name. **Ours also weighs
+  each view by how well its masks fit the region**: ``p_r^v`` times ``fit_r^v``
+  (``fit_power`` 1), the kept masks' precision (the share of each mask's counted weight in the
+  view that lies in r) averaged by their shares: a view whose mask holds the region and much
+  else (a table leg's ``m`` mask that also holds the top) says less about the region than one
+  whose mask is the region. The reference counts every labelled Gaussian once and every view by
+  its visible share alone (:meth:`FeatureConfig.as_reference`).
 - ``"centres"`` (its mode 1, 3DOVS preset): per view, every Gaussian with ``max w >
   centre_weight`` takes the mask under its projected centre, weighted by its ``max w``; if at
   least ``min_visible`` of r's Gaussians are used in v, ``f_r += normalize(Σ w · F_v[mask]) ·
@@ -38,6 +43,7 @@ each step goes over the views again rather than holding every view's [R, D] vect
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
@@ -75,6 +81,10 @@ class FeatureConfig:
         visibility_power: mode shares: p: a counted Gaussian weighs ``(max_x w(x))^p`` in the
             mask shares and in the visible share ``p_r^v`` (ours 2; the reference 0: every
             Gaussian weighs 1).
+        fit_power: mode shares: q: view v's vector of region r weighs ``p_r^v · (fit_r^v)^q``,
+            ``fit_r^v`` in [0, 1] the kept masks' precision in v (each mask's counted weight
+            inside r over its counted weight in the view) averaged by their shares (ours 1; the
+            reference 0: the visible share alone).
         centre_weight: mode centres: a Gaussian is used in a view if its max blending weight
             exceeds this.
         min_visible: mode centres: a view contributes to a region only if at least this share
@@ -95,6 +105,7 @@ class FeatureConfig:
     visible_weight: float = 1e-4
     min_max_weight: float = 0.05
     visibility_power: float = 2.0
+    fit_power: float = 1.0
     centre_weight: float = 0.01
     min_visible: float = 0.1
     median_steps: int = 2
@@ -124,10 +135,10 @@ class FeatureConfig:
             raise InputError(
                 "FeatureConfig", f"median_softness must be > 0, got {self.median_softness}"
             )
-        if not self.visibility_power >= 0:
-            raise InputError(
-                "FeatureConfig", f"visibility_power must be ≥ 0, got {self.visibility_power}"
-            )
+        for name in ("visibility_power", "fit_power"):
+            value = getattr(self, name)
+            if not 0 <= value < math.inf:
+                raise InputError("FeatureConfig", f"{name} must be finite and ≥ 0, got {value}")
 
     @classmethod
     def lerf(cls) -> FeatureConfig:
@@ -142,8 +153,11 @@ class FeatureConfig:
 
     def as_reference(self) -> FeatureConfig:
         """The same numbers with the authors' pooling: the weighted mean over views, and in
-        mode shares every labelled Gaussian counting once, however faintly the view sees it."""
-        return replace(self, min_max_weight=0.0, visibility_power=0.0, median_steps=0)
+        mode shares every labelled Gaussian counting once, however faintly the view sees it,
+        and every view weighing its visible share, however well its masks fit."""
+        return replace(
+            self, min_max_weight=0.0, visibility_power=0.0, fit_power=0.0, median_steps=0
+        )
 
 
 def _centre_pixels(means: Tensor, camera: Cameras, indices: Tensor, height: int, width: int):
@@ -363,9 +377,26 @@ def _shares_view(
     labels: Tensor,
     features: Tensor,
     config: FeatureConfig,
+    keep: Tensor | None,
 ) -> None:
+    """One view's unit vectors in mode shares; ``keep`` [n] (None: all) the view's Gaussians
+    that count, while every one of them counts in its mask's weight (the fit's precision)."""
     counted = max_weights >= config.min_max_weight
     weights = max_weights.double() ** config.visibility_power
+    totals = {}  # level → [masks] each mask's counted weight in the view
+    if config.fit_power > 0:
+        for level in levels:
+            masks = labels[:, level.level].long()
+            use = counted & (masks >= 0)
+            totals[level.level] = torch.bincount(masks[use], weights[use])
+    if keep is not None:
+        gaussians, labels, counted, weights = (
+            gaussians[keep],
+            labels[keep],
+            counted[keep],
+            weights[keep],
+        )
+        max_weights = max_weights[keep]
     visible_weights = torch.where(counted & (max_weights > config.visible_weight), weights, 0.0)
     for level in levels:
         count = len(level.sizes)
@@ -376,11 +407,22 @@ def _shares_view(
         pooled = _pooled(regions, masks, weights, counted & (masks >= 0), count)
         if pooled is None:
             continue
-        shares, low = pooled
-        shares = _fraction(shares, shares.sum(dim=1, keepdim=True))
+        table, low = pooled
+        shares = _fraction(table, table.sum(dim=1, keepdim=True))
         shares = torch.where(shares < config.min_share, 0.0, shares)
-        masks_features = features[low : low + shares.shape[1]]
-        _accumulate(level, shares, masks_features, _fraction(seen, level.sizes))
+        scale = _fraction(seen, level.sizes)
+        if config.fit_power > 0:
+            mask_totals = totals[level.level][low : low + table.shape[1]]
+            scale = scale * _fit(table, shares, mask_totals) ** config.fit_power
+        _accumulate(level, shares, features[low : low + shares.shape[1]], scale)
+
+
+def _fit(table: Tensor, shares: Tensor, totals: Tensor) -> Tensor:
+    """[R] how well the kept masks fit each region in one view: each mask's precision (its
+    weight inside the region, ``table`` [R, M], over its weight in the view, ``totals`` [M])
+    averaged by the region's kept ``shares`` [R, M]; 0 for a region that keeps none."""
+    precision = _fraction(table, totals[None, :])
+    return _fraction((shares * precision).sum(dim=1), shares.sum(dim=1))
 
 
 def _centres_view(
@@ -430,13 +472,13 @@ def _pool_views(
         if len(view_features) == 0:
             continue
         seen, max_weights, view_labels = view.gaussians.long(), view.max_weights, view.labels
-        if inside is not None:
-            keep = inside[seen]
-            seen, max_weights, view_labels = seen[keep], max_weights[keep], view_labels[keep]
+        keep = None if inside is None else inside[seen]
         features = torch.from_numpy(view_features).to(device=device, dtype=torch.float64)
         if masks is None:
-            _shares_view(levels, seen, max_weights, view_labels, features, config)
+            _shares_view(levels, seen, max_weights, view_labels, features, config, keep)
         else:
+            if keep is not None:
+                seen, max_weights = seen[keep], max_weights[keep]
             segments = torch.from_numpy(masks.segments).to(device)
             camera = cameras.select([i])
             _centres_view(levels, seen, max_weights, features, means, camera, segments, config)

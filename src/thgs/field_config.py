@@ -230,6 +230,7 @@ _BEFORE_RECORDED = {
     ("superpoints", "partition", "split_alternatives"): 2,
     ("superpoints", "partition", "polish"): False,
     ("features", "median_steps"): 0,
+    ("features", "fit_power"): 0.0,
     ("superpoints", "partition", "block_size"): 0,
     ("superpoints", "partition", "coarsen_levels"): 0,
 }
