@@ -248,22 +248,22 @@ def test_a_field_recorded_before_polish_was_partitioned_without_it(small_field):
     )
 
 
-def test_a_field_recorded_before_median_steps_took_the_mean_over_views(small_field):
+@pytest.mark.parametrize(
+    ("setting", "ours", "before"),
+    [
+        ("median_steps", 2, 0),  # before it, the mean over views
+        ("fit_power", 1.0, 0.0),  # before it, each view weighed by its visible share alone
+    ],
+)
+def test_a_field_recorded_before_a_feature_setting_rebuilds_as_it_was(
+    small_field, setting, ours, before
+):
     field = load_field(small_field)
     recorded = recorded_config(field).features
-    assert recorded.median_steps == FeatureConfig().median_steps == 2
-    features = {k: v for k, v in field.config["features"].items() if k != "median_steps"}
+    assert getattr(recorded, setting) == getattr(FeatureConfig(), setting) == ours
+    features = {k: v for k, v in field.config["features"].items() if k != setting}
     older = dataclasses.replace(field, config={**field.config, "features": features})
-    assert recorded_config(older).features == dataclasses.replace(recorded, median_steps=0)
-
-
-def test_a_field_recorded_before_the_fit_weighed_views_by_their_visible_share(small_field):
-    field = load_field(small_field)
-    recorded = recorded_config(field).features
-    assert recorded.fit_power == FeatureConfig().fit_power == 1.0
-    features = {k: v for k, v in field.config["features"].items() if k != "fit_power"}
-    older = dataclasses.replace(field, config={**field.config, "features": features})
-    assert recorded_config(older).features == dataclasses.replace(recorded, fit_power=0.0)
+    assert recorded_config(older).features == dataclasses.replace(recorded, **{setting: before})
 
 
 def test_the_scene_is_found_relative_to_the_field(small_dataset, small_field, tmp_path):

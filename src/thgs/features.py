@@ -383,20 +383,17 @@ def _shares_view(
     that count, while every one of them counts in its mask's weight (the fit's precision)."""
     counted = max_weights >= config.min_max_weight
     weights = max_weights.double() ** config.visibility_power
-    totals = {}  # level → [masks] each mask's counted weight in the view
-    if config.fit_power > 0:
-        for level in levels:
-            masks = labels[:, level.level].long()
-            use = counted & (masks >= 0)
-            totals[level.level] = torch.bincount(masks[use], weights[use])
+    # level → [masks] each mask's counted weight over the whole view; without ``keep`` these are
+    # the column sums of the level's table below
+    whole_view = {}
     if keep is not None:
-        gaussians, labels, counted, weights = (
-            gaussians[keep],
-            labels[keep],
-            counted[keep],
-            weights[keep],
-        )
-        max_weights = max_weights[keep]
+        if config.fit_power > 0:
+            for level in levels:
+                masks = labels[:, level.level].long()
+                use = counted & (masks >= 0)
+                whole_view[level.level] = torch.bincount(masks[use], weights[use])
+        gaussians, labels, max_weights = gaussians[keep], labels[keep], max_weights[keep]
+        counted, weights = counted[keep], weights[keep]
     visible_weights = torch.where(counted & (max_weights > config.visible_weight), weights, 0.0)
     for level in levels:
         count = len(level.sizes)
@@ -412,8 +409,9 @@ def _shares_view(
         shares = torch.where(shares < config.min_share, 0.0, shares)
         scale = _fraction(seen, level.sizes)
         if config.fit_power > 0:
-            mask_totals = totals[level.level][low : low + table.shape[1]]
-            scale = scale * _fit(table, shares, mask_totals) ** config.fit_power
+            totals = whole_view.get(level.level)
+            totals = table.sum(dim=0) if totals is None else totals[low : low + table.shape[1]]
+            scale = scale * _fit(table, shares, totals) ** config.fit_power
         _accumulate(level, shares, features[low : low + shares.shape[1]], scale)
 
 
