@@ -17,7 +17,7 @@ from thgs.eval import purity
 from thgs.graph import GraphConfig, KnnGraph, PartitionConfig, knn_graph, partition
 from thgs.graph.coarsen import ATOM_TOLERANCE, coarsen
 from thgs.graph.energy import connected, join_seams, polish
-from thgs.graph.partition import _blocks, _edge_weights, _features
+from thgs.graph.partition import _blocks, _edge_weights, _features, _solver_arguments
 from thgs.pipeline import SuperpointConfig
 from thgs.scene.gaussians import SH_C0
 from thgs.synthetic import generate_scene, preset
@@ -224,6 +224,9 @@ def test_presets_and_config_checks():
     assert lerf.coarsen_levels == 0
     coarsened = SuperpointConfig(partition=PartitionConfig(coarsen_levels=2))
     assert coarsened.as_reference().partition.coarsen_levels == 0
+    assert lerf.max_split_size == 0
+    chunked = SuperpointConfig(partition=PartitionConfig(max_split_size=5000))
+    assert chunked.as_reference().partition.max_split_size == 0
     bad_settings = (
         {"regularization": -1.0},
         {"split_damp_ratio": 0.0},
@@ -231,6 +234,8 @@ def test_presets_and_config_checks():
         {"split_alternatives": 1},
         {"coarsen_levels": -1},
         {"coarsen_levels": 9},
+        {"max_split_size": -1},
+        {"max_split_size": 999},
     )
     for bad in bad_settings:
         with pytest.raises(InputError):
@@ -452,6 +457,46 @@ def test_the_result_does_not_depend_on_the_number_of_workers():
     assert objective(gaussians, graph, one, config) < 1.03 * objective(
         gaussians, graph, whole, config
     )
+
+
+def test_chunks_are_sized_by_the_piece_alone_and_get_at_most_one_thread_each():
+    def kwargs(m: int, max_split_size: int, threads: int) -> dict:
+        features = np.zeros((m, 9), dtype=np.float32)
+        sources, targets = np.arange(m - 1), np.arange(1, m)
+        weights = np.ones(m - 1, dtype=np.float32)
+        config = PartitionConfig(max_split_size=max_split_size)
+        return _solver_arguments(features, sources, targets, weights, None, config, threads)[1]
+
+    # 47,859 vertices in chunks of at most 25,000: two chunks of ⌈47,859 / 2⌉ = 23,930; the
+    # solver's own chunks, ⌈m / t⌉ for the t ≤ 2 threads it may run, are never smaller
+    for threads, granted in ((1, 1), (2, 2), (8, 2)):
+        chosen = kwargs(47_859, 25_000, threads)
+        assert (chosen["max_split_size"], chosen["max_num_threads"]) == (23_930, granted)
+        assert chosen["balance_parallel_split"] is False
+    assert kwargs(50_001, 25_000, 8)["max_split_size"] == 16_667  # three chunks
+    whole = kwargs(20_000, 25_000, 8)  # fits one split problem: one thread, no chunks
+    assert (whole["max_split_size"], whole["max_num_threads"]) == (20_000, 1)
+    assert kwargs(47_859, 0, 8)["max_num_threads"] == 1  # no chunks by default
+
+
+@pytest.mark.slow
+def test_chunked_splits_give_the_same_superpoints_with_any_threads():
+    gaussians = noisy_plane(n=6000, seed=3)
+    graph = knn_graph(gaussians)
+    whole = PartitionConfig(block_size=0)
+    chunked = replace(whole, max_split_size=1000)
+    # 8,000 holds the plane whole: one thread, which the solver would otherwise cut in two
+    for config in (chunked, replace(chunked, block_size=3000), replace(whole, max_split_size=8000)):
+        one = partition(gaussians, graph, graph.distances, config, workers=1)
+        for workers in (2, 8):  # here with 2 or 8 solver threads, or in worker processes
+            np.testing.assert_array_equal(
+                partition(gaussians, graph, graph.distances, config, workers=workers), one
+            )
+        # the cuts between chunks cost little in the objective
+        reference = partition(gaussians, graph, graph.distances, whole)
+        assert objective(gaussians, graph, one, config) < 1.03 * objective(
+            gaussians, graph, reference, config
+        )
 
 
 def test_block_size_and_workers_out_of_range_are_refused():
