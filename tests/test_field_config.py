@@ -115,7 +115,7 @@ def test_set_takes_plain_text_for_choices():
         ("superpoints.partition.regularization=1e30", "regularization must be from 0 to 100"),
         ("superpoints.partition.cp_it_max=1000000000", "cp_it_max must be from 1 to 1,000"),
         ("superpoints.partition.split_alternatives=100000", "split_alternatives must be from 2"),
-        ("superpoints.partition.max_split_size=10", "max_split_size: must be 0 (split whole) or"),
+        ("superpoints.partition.max_split_size=10", "max_split_size: must be 0 .split whole. or"),
         ("merge.neighbors=1000000000", "neighbors: must be from 2 to 1,000"),
         ("repeats.neighbors=1000000000", "neighbors: must be from 2 to 1,000"),
         ("features.median_steps=1000000000", "median_steps must be an integer from 0 to 1,000"),
