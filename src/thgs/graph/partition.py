@@ -114,7 +114,7 @@ class PartitionConfig:
             many vertices and solves them in parallel, one thread each (the solver's
             ``max_split_size``); the cuts between chunks are made and may merge again. The
             same result on any number of threads, a different one from 0: synth-small's
-            builds took 3.5–4.0 s instead of 4.6–5.3 s with 25 000 on two cores, and objects
+            builds took 3.5–4.0 s instead of 4.5–6.0 s with 25 000 on two cores, and objects
             lost 0.012 mIoU over ten seeds (docs/partition.md).
         coarsen_levels: passes of heavy-edge matching before the solver (0, the default: the
             solver sees every Gaussian; at most 8). Each pass joins pairs of neighbours whose
