@@ -15,13 +15,7 @@ from thgs import build_ray, cluster  # noqa: E402
 from thgs.errors import ThgsError  # noqa: E402
 from thgs.synthetic import generate_scene, preset  # noqa: E402
 
-# several blocks (solver tasks), each split in two chunks inside the solver
-BLOCKS = [
-    "--set",
-    "superpoints.partition.block_size=2000",
-    "--set",
-    "superpoints.partition.max_split_size=1000",
-]
+BLOCKS = ["--set", "superpoints.partition.block_size=1000"]  # several blocks: solver tasks
 
 
 def test_ray_must_be_connected_first():

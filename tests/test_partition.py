@@ -224,9 +224,9 @@ def test_presets_and_config_checks():
     assert lerf.coarsen_levels == 0
     coarsened = SuperpointConfig(partition=PartitionConfig(coarsen_levels=2))
     assert coarsened.as_reference().partition.coarsen_levels == 0
-    assert lerf.max_split_size == 0
-    chunked = SuperpointConfig(partition=PartitionConfig(max_split_size=5000))
-    assert chunked.as_reference().partition.max_split_size == 0
+    assert not lerf.threaded_largest
+    threaded = SuperpointConfig(partition=PartitionConfig(threaded_largest=True))
+    assert not threaded.as_reference().partition.threaded_largest
     bad_settings = (
         {"regularization": -1.0},
         {"split_damp_ratio": 0.0},
@@ -234,8 +234,6 @@ def test_presets_and_config_checks():
         {"split_alternatives": 1},
         {"coarsen_levels": -1},
         {"coarsen_levels": 9},
-        {"max_split_size": -1},
-        {"max_split_size": 999},
     )
     for bad in bad_settings:
         with pytest.raises(InputError):
@@ -459,44 +457,45 @@ def test_the_result_does_not_depend_on_the_number_of_workers():
     )
 
 
-def test_chunks_are_sized_by_the_piece_alone_and_get_at_most_one_thread_each():
-    def kwargs(m: int, max_split_size: int, threads: int) -> dict:
-        features = np.zeros((m, 9), dtype=np.float32)
-        sources, targets = np.arange(m - 1), np.arange(1, m)
-        weights = np.ones(m - 1, dtype=np.float32)
-        config = PartitionConfig(max_split_size=max_split_size)
-        return _solver_arguments(features, sources, targets, weights, None, config, threads)[1]
-
-    # 47,859 vertices in chunks of at most 25,000: two chunks of ⌈47,859 / 2⌉ = 23,930; the
-    # solver's own chunks, ⌈m / t⌉ for the t ≤ 2 threads it may run, are never smaller
-    for threads, granted in ((1, 1), (2, 2), (8, 2)):
-        chosen = kwargs(47_859, 25_000, threads)
-        assert (chosen["max_split_size"], chosen["max_num_threads"]) == (23_930, granted)
-        assert chosen["balance_parallel_split"] is False
-    assert kwargs(50_001, 25_000, 8)["max_split_size"] == 16_667  # three chunks
-    whole = kwargs(20_000, 25_000, 8)  # fits one split problem: one thread, no chunks
-    assert (whole["max_split_size"], whole["max_num_threads"]) == (20_000, 1)
-    assert kwargs(47_859, 0, 8)["max_num_threads"] == 1  # no chunks by default
+def test_a_threaded_solve_gets_an_isolated_vertex_more_and_the_solver_balancing_off():
+    m = 5
+    features = np.arange(m * 9, dtype=np.float32).reshape(m, 9)
+    sources, targets = np.arange(m - 1), np.arange(1, m)
+    weights, config = np.ones(m - 1, dtype=np.float32), PartitionConfig()
+    args, kwargs = _solver_arguments(features, sources, targets, weights, None, config)
+    assert args[1].shape == (9, m) and args[2].tolist() == [0, 1, 2, 3, 4, 4]
+    assert kwargs["max_num_threads"] == 1 and "max_split_size" not in kwargs
+    vertex_weights = np.full(m, 2.0)
+    args, kwargs = _solver_arguments(features, sources, targets, weights, vertex_weights, config, 4)
+    assert args[1].shape == (9, m + 1) and args[2].tolist() == [0, 1, 2, 3, 4, 4, 4]
+    np.testing.assert_array_equal(args[1][:, m], features[0])
+    assert args[1].flags.f_contiguous
+    assert (kwargs["max_num_threads"], kwargs["max_split_size"]) == (4, m)
+    assert kwargs["balance_parallel_split"] is False
+    assert kwargs["vert_weights"].tolist() == [2.0] * m + [1.0]
 
 
 @pytest.mark.slow
-def test_chunked_splits_give_the_same_superpoints_with_any_threads():
-    gaussians = noisy_plane(n=6000, seed=3)
-    graph = knn_graph(gaussians)
-    whole = PartitionConfig(block_size=0)
-    chunked = replace(whole, max_split_size=1000)
-    # 8,000 holds the plane whole: one thread, which the solver would otherwise cut in two
-    for config in (chunked, replace(chunked, block_size=3000), replace(whole, max_split_size=8000)):
-        one = partition(gaussians, graph, graph.distances, config, workers=1)
-        for workers in (2, 8):  # here with 2 or 8 solver threads, or in worker processes
+def test_the_largest_piece_threaded_gives_the_same_superpoints_with_any_threads():
+    plane = noisy_plane(n=6000, seed=3)
+    corner = noisy_plane(n=2500, seed=5)  # a second piece, far away: solver tasks in processes
+    gaussians = surfels(
+        np.concatenate([plane.means.numpy(), corner.means.numpy() + np.array([20.0, 0.0, 0.0])]),
+        np.concatenate([plane.sh[:, 0].numpy(), corner.sh[:, 0].numpy()]) * SH_C0 + 0.5,
+    )
+    single = PartitionConfig(block_size=0)
+    for scene in (plane, gaussians):  # the plane solved here, or in the larger of two processes
+        graph = knn_graph(scene)
+        config = replace(single, threaded_largest=True)
+        one = partition(scene, graph, graph.distances, config, workers=1)
+        for workers in (2, 8):
             np.testing.assert_array_equal(
-                partition(gaussians, graph, graph.distances, config, workers=workers), one
+                partition(scene, graph, graph.distances, config, workers=workers), one
             )
-        # the cuts between chunks cost little in the objective
-        reference = partition(gaussians, graph, graph.distances, whole)
-        assert objective(gaussians, graph, one, config) < 1.03 * objective(
-            gaussians, graph, reference, config
-        )
+        assert pieces_of(one, graph) == one.max() + 1
+        # another path to another local minimum of the same energy, not a worse one
+        alone = partition(scene, graph, graph.distances, single, workers=2)
+        assert objective(scene, graph, one, config) < 1.03 * objective(scene, graph, alone, config)
 
 
 def test_block_size_and_workers_out_of_range_are_refused():

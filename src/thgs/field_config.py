@@ -89,7 +89,7 @@ class SuperpointConfig:
                 split_alternatives=2,
                 polish=False,
                 coarsen_levels=0,
-                max_split_size=0,
+                threaded_largest=False,
             ),
         )
 
@@ -234,7 +234,7 @@ _BEFORE_RECORDED = {
     ("features", "fit_power"): 0.0,
     ("superpoints", "partition", "block_size"): 0,
     ("superpoints", "partition", "coarsen_levels"): 0,
-    ("superpoints", "partition", "max_split_size"): 0,
+    ("superpoints", "partition", "threaded_largest"): False,
 }
 """Settings added after fields were first recorded, with the value every earlier build used."""
 

@@ -13,11 +13,12 @@ spatial blocks of at most ``block_size`` Gaussians (recursive halving of each co
 at the median of its longest axis: the data decide the blocks, not the threads), every
 connected piece of a block is solved by the solver, in parallel worker processes
 (:func:`_solved`), and superpoints that meet across a block seam are merged while that lowers
-the same energy (:func:`thgs.graph.energy.join_seams`). Inside the solver, a component of more
-than ``max_split_size`` vertices is split in equal chunks, one thread each; the chunk size is
-fixed from the piece's size and ``max_split_size`` alone (by default, no chunks: one thread),
-and the solver is given at most one thread per chunk, so that its own balancing (which sizes
-chunks by the threads it has) never decides (:func:`_solver_arguments`). Single-Gaussian moves
+the same energy (:func:`thgs.graph.energy.join_seams`). A piece is solved on one thread (the
+solver's parallel split cuts differently with another thread count); with
+``threaded_largest``, a piece holding more than half of the vertices to solve, which would
+otherwise keep one core busy while the others wait, is solved by the solver's own threads in a
+form whose result does not depend on their number (:func:`_solver_arguments`). Single-Gaussian
+moves
 then polish the whole partition (:func:`thgs.graph.energy.polish`).
 
 With ``coarsen_levels``, each piece's graph is first coarsened by heavy-edge matching into atoms
@@ -108,14 +109,13 @@ class PartitionConfig:
             output). The solver merges a component smaller than ``min_comp_weight`` into an
             adjacent one, which can be the wrong one: five Gaussians of a table's underside,
             joined to a chair's superpoint through floaters (docs/partition.md).
-        max_split_size: 0 (the default): the solver splits every component whole, on one
-            thread. Else the most vertices of one split problem inside the solver (at least
-            1,000): the split step cuts a larger component into equal chunks of at most this
-            many vertices and solves them in parallel, one thread each (the solver's
-            ``max_split_size``); the cuts between chunks are made and may merge again. The
-            same result on any number of threads, a different one from 0: synth-small's
-            builds took 3.5–4.0 s instead of 4.5–6.0 s with 25 000 on two cores, and objects
-            lost 0.012 mIoU over ten seeds (docs/partition.md).
+        threaded_largest: solve a piece that holds more than half of the vertices to solve (a
+            scene of one block, such as synth-small) on the solver's own threads, in a form
+            whose result is the same on any number of them (False, the default: one thread,
+            whatever the piece). Another path to another local minimum: on two cores
+            synth-small's builds took 3.3–3.9 s instead of 4.5–6.0 s, and its regions scored
+            0.001 / 0.003 / 0.002 lower on sub-parts / parts / objects over ten seeds
+            (docs/partition.md). Scenes of several blocks of similar size are unchanged.
         coarsen_levels: passes of heavy-edge matching before the solver (0, the default: the
             solver sees every Gaussian; at most 8). Each pass joins pairs of neighbours whose
             edge the votes made no lighter and whose join raises the data term by at most half
@@ -138,7 +138,7 @@ class PartitionConfig:
     weight_scale: Literal["graph", "reweighted"] = "graph"
     split_alternatives: int = 6
     polish: bool = True
-    max_split_size: int = 0
+    threaded_largest: bool = False
     coarsen_levels: int = 0
 
     def __post_init__(self) -> None:
@@ -159,12 +159,6 @@ class PartitionConfig:
                 "PartitionConfig.block_size",
                 f"must be 0 (no blocks) or at least {MIN_BLOCK_SIZE} Gaussians, "
                 f"got {self.block_size}",
-            )
-        if self.max_split_size != 0 and not MIN_BLOCK_SIZE <= self.max_split_size:
-            raise InputError(
-                "PartitionConfig.max_split_size",
-                f"must be 0 (split whole) or at least {MIN_BLOCK_SIZE} Gaussians, "
-                f"got {self.max_split_size}",
             )
         if not 2 <= self.split_alternatives <= 64:
             raise InputError(
@@ -310,27 +304,36 @@ def _solver_arguments(
     weights: np.ndarray,
     vertex_weights: np.ndarray | None,
     config: PartitionConfig,
-    threads: int = 1,
+    threads: int | None = None,
 ) -> tuple[tuple, dict]:
-    """``(args, kwargs)`` of ``cp_d0_dist`` on one connected graph of m vertices, using at most
-    ``threads`` threads, with the same result for any ``threads`` ≥ 1.
+    """``(args, kwargs)`` of ``cp_d0_dist`` on one connected graph of m vertices: on one thread
+    (``threads`` None), or on up to ``threads`` with the same result for any number ≥ 1.
 
     ``features`` is [m, 9]; edges ``sources[e] < targets[e]`` are local indices sorted by source;
-    ``vertex_weights`` [m] the Gaussians each vertex stands for (None: one each).
+    ``vertex_weights`` [m] the Gaussians each vertex stands for (None: one each). The solver's
+    output holds the graph's m vertices first (:func:`_solved` drops any others).
 
-    The solver cuts a component larger than its ``max_split_size`` S into chunks of at most
-    ``min(S, ⌈m / t⌉)`` vertices, t the threads it runs (1 … its ``max_num_threads``). With
-    ``c = ⌈m / config.max_split_size⌉`` chunks, S is ``⌈m / c⌉`` and ``max_num_threads`` at most
-    c, so ``⌈m / t⌉ ≥ S`` for every t it may run and the chunks are S whatever the threads. Its
-    own balancing (chunks of ``⌈m / t⌉``) is off.
+    What the solver's result depends on in its threads t (pycut-pursuit 0.1.3–0.1.4, read in
+    its source and checked): it orders its components by size before each split when t > 1 or
+    its ``max_split_size`` S is below its vertex count V, and it cuts a component larger than
+    ``min(S, ⌈(V − 1) / t⌉)`` into chunks when its balancing is on or a component exceeds S.
+    With threads, the graph gets one isolated vertex more (V = m + 1: a component of its own,
+    which no edge joins), S = m and the balancing off: the components are always ordered and
+    never chunked, whatever t. The order is another path to another local minimum than one
+    thread's; neither is better on average (docs/partition.md).
     """
     m = features.shape[0]
-    chunks = -(-m // config.max_split_size) if config.max_split_size else 1
-    first_edge = np.zeros(m + 1, dtype=np.int32)
-    np.cumsum(np.bincount(sources, minlength=m), out=first_edge[1:])
+    shared = threads is not None
+    first_edge = np.zeros(m + 1 + shared, dtype=np.int32)
+    np.cumsum(np.bincount(sources, minlength=m), out=first_edge[1 : m + 1])
+    if shared:
+        first_edge[m + 1] = first_edge[m]
+        features = np.concatenate([features, features[:1]])  # the isolated vertex: any value
+        if vertex_weights is not None:
+            vertex_weights = np.append(vertex_weights, 1.0)
     args = (
         features.shape[1],
-        features.T,  # the transpose of a C-contiguous [m, 9] array is F-contiguous, as required
+        features.T,  # the transpose of a C-contiguous [V, 9] array is F-contiguous, as required
         first_edge,
         targets.astype(np.int32),
     )
@@ -342,10 +345,10 @@ def _solver_arguments(
         "split_damp_ratio": config.split_damp_ratio,
         "K": config.split_alternatives,
         "verbose": False,
-        "max_num_threads": max(1, min(threads, chunks)),
-        "max_split_size": -(-m // chunks),
-        "balance_parallel_split": False,
+        "max_num_threads": max(1, threads) if shared else 1,
     }
+    if shared:
+        kwargs |= {"max_split_size": m, "balance_parallel_split": False}
     if vertex_weights is not None:
         kwargs["vert_weights"] = vertex_weights.astype(np.float32)
     return args, kwargs
@@ -419,10 +422,12 @@ def _solved(
     With ``ray``, or ``workers`` > 1, and at least :data:`_SHARED_FROM` vertices besides the
     largest task, the tasks are shared out (:func:`_shares`) to Ray tasks, one per CPU of the
     cluster (:func:`thgs.build_ray.ray_solve`), or to ``workers`` fresh Python processes
-    (:data:`_WORKER`); else they are solved here one by one. A solve gives the same result on
-    any number of threads (:func:`_solver_arguments`): here it may use ``workers`` threads, in a
-    worker process the share of them its share of the vertices rounds to (at least one), in a
-    Ray task one (a Ray task holds one CPU). Fresh
+    (:data:`_WORKER`); else they are solved here one by one. Every task is solved on one
+    thread, except with ``config.threaded_largest`` one holding more than half of all the
+    vertices, solved in the solver's form that gives the same result on any number of threads:
+    here on ``workers`` threads, in a worker process on the share of them its share of the
+    vertices rounds to, in a Ray task (one CPU) on one. So where a task runs does not change
+    its result. Fresh
     processes, not a fork of this one (a fork of a process whose OpenMP runtimes, the
     KD-tree's or torch's, have started threads hangs in the solver) nor multiprocessing's
     spawn (which runs the caller's main module again in every worker).
@@ -433,29 +438,35 @@ def _solved(
     """
     solver = _solver()
     sizes = [len(task[0]) for task in tasks]
+    dominant = [config.threaded_largest and 2 * size > sum(sizes) for size in sizes]
+
+    def arguments(i: int, threads: int) -> tuple[tuple, dict]:
+        return _solver_arguments(*tasks[i], config, threads if dominant[i] else None)
+
     small = sum(sorted(sizes)[:-1]) < _SHARED_FROM
     found: list[np.ndarray] = [np.zeros(0)] * len(tasks)
     if ray and not small:
         from thgs.build_ray import ray_solve, ray_workers
 
         shares = _shares(sizes, ray_workers())
-        calls = [_solver_arguments(*task, config) for task in tasks]
-        for share, solved in zip(
-            shares, ray_solve([[calls[i] for i in share] for share in shares])
-        ):
-            for i, components in zip(share, solved):
-                found[i] = components.astype(np.int64)
+        solved = ray_solve([[arguments(i, 1) for i in share] for share in shares])
+        for share, components in zip(shares, solved):
+            for i, ids in zip(share, components):
+                found[i] = ids[: sizes[i]].astype(np.int64)
         return found
     if workers < 2 or small or not sys.executable:
-        calls = [_solver_arguments(*task, config, workers) for task in tasks]
-        return [solver(*args, **kwargs)[0].astype(np.int64) for args, kwargs in calls]
+        calls = [arguments(i, workers) for i in range(len(tasks))]
+        return [
+            solver(*args, **kwargs)[0][:size].astype(np.int64)
+            for (args, kwargs), size in zip(calls, sizes)
+        ]
     shares = _shares(sizes, workers)
     loads = [sum(sizes[i] for i in share) for share in shares]
     processes = []
     try:
         for share, load in zip(shares, loads):
             threads = max(1, round(workers * load / sum(loads)))  # its share of the threads
-            calls = [_solver_arguments(*tasks[i], config, threads) for i in share]
+            calls = [arguments(i, threads) for i in share]
             errors = tempfile.TemporaryFile()
             process = subprocess.Popen(
                 [sys.executable, "-c", _WORKER],
@@ -479,7 +490,7 @@ def _solved(
                     f"{process.returncode}: {message}"
                 )
             for i, components in zip(share, pickle.loads(output)):
-                found[i] = components.astype(np.int64)
+                found[i] = components[: sizes[i]].astype(np.int64)
     finally:
         for process, errors in processes:
             if process.poll() is None:
