@@ -17,9 +17,8 @@ the same energy (:func:`thgs.graph.energy.join_seams`). A piece is solved on one
 solver's parallel split cuts differently with another thread count); with
 ``threaded_largest``, a piece holding more than half of the vertices to solve, which would
 otherwise keep one core busy while the others wait, is solved by the solver's own threads in a
-form whose result does not depend on their number (:func:`_solver_arguments`). Single-Gaussian
-moves
-then polish the whole partition (:func:`thgs.graph.energy.polish`).
+form whose result does not depend on their number (:func:`_solver_arguments`).
+Single-Gaussian moves then polish the whole partition (:func:`thgs.graph.energy.polish`).
 
 With ``coarsen_levels``, each piece's graph is first coarsened by heavy-edge matching into atoms
 of Gaussians that would rather stay together (:func:`thgs.graph.coarsen.coarsen`) and the
@@ -345,7 +344,7 @@ def _solver_arguments(
         "split_damp_ratio": config.split_damp_ratio,
         "K": config.split_alternatives,
         "verbose": False,
-        "max_num_threads": max(1, threads) if shared else 1,
+        "max_num_threads": threads if shared else 1,
     }
     if shared:
         kwargs |= {"max_split_size": m, "balance_parallel_split": False}
@@ -427,10 +426,9 @@ def _solved(
     vertices, solved in the solver's form that gives the same result on any number of threads:
     here on ``workers`` threads, in a worker process on the share of them its share of the
     vertices rounds to, in a Ray task (one CPU) on one. So where a task runs does not change
-    its result. Fresh
-    processes, not a fork of this one (a fork of a process whose OpenMP runtimes, the
-    KD-tree's or torch's, have started threads hangs in the solver) nor multiprocessing's
-    spawn (which runs the caller's main module again in every worker).
+    its result. Fresh processes, not a fork of this one (a fork of a process whose OpenMP
+    runtimes, the KD-tree's or torch's, have started threads hangs in the solver) nor
+    multiprocessing's spawn (which runs the caller's main module again in every worker).
 
     Raises:
         ThgsError: a solver process failed (its error output is in the message), or Ray is
@@ -438,7 +436,8 @@ def _solved(
     """
     solver = _solver()
     sizes = [len(task[0]) for task in tasks]
-    dominant = [config.threaded_largest and 2 * size > sum(sizes) for size in sizes]
+    total = sum(sizes)
+    dominant = [config.threaded_largest and 2 * size > total for size in sizes]
 
     def arguments(i: int, threads: int) -> tuple[tuple, dict]:
         return _solver_arguments(*tasks[i], config, threads if dominant[i] else None)
@@ -461,11 +460,11 @@ def _solved(
             for (args, kwargs), size in zip(calls, sizes)
         ]
     shares = _shares(sizes, workers)
-    loads = [sum(sizes[i] for i in share) for share in shares]
     processes = []
     try:
-        for share, load in zip(shares, loads):
-            threads = max(1, round(workers * load / sum(loads)))  # its share of the threads
+        for share in shares:
+            load = sum(sizes[i] for i in share)
+            threads = max(1, round(workers * load / total))  # its share of the threads
             calls = [arguments(i, threads) for i in share]
             errors = tempfile.TemporaryFile()
             process = subprocess.Popen(
