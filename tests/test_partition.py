@@ -17,7 +17,13 @@ from thgs.eval import purity
 from thgs.graph import GraphConfig, KnnGraph, PartitionConfig, knn_graph, partition
 from thgs.graph.coarsen import ATOM_TOLERANCE, coarsen
 from thgs.graph.energy import connected, join_seams, polish
-from thgs.graph.partition import _blocks, _edge_weights, _features, _solver_arguments
+from thgs.graph.partition import (
+    SOLVER_THREADS,
+    _blocks,
+    _edge_weights,
+    _features,
+    _solver_arguments,
+)
 from thgs.pipeline import SuperpointConfig
 from thgs.scene.gaussians import SH_C0
 from thgs.synthetic import generate_scene, preset
@@ -466,11 +472,18 @@ def test_a_threaded_solve_gets_an_isolated_vertex_more_and_the_solver_balancing_
     assert args[1].shape == (9, m) and args[2].tolist() == [0, 1, 2, 3, 4, 4]
     assert kwargs["max_num_threads"] == 1 and "max_split_size" not in kwargs
     vertex_weights = np.full(m, 2.0)
-    args, kwargs = _solver_arguments(features, sources, targets, weights, vertex_weights, config, 4)
+    args, kwargs = _solver_arguments(features, sources, targets, weights, vertex_weights, config, 8)
     assert args[1].shape == (9, m + 1) and args[2].tolist() == [0, 1, 2, 3, 4, 4, 4]
     np.testing.assert_array_equal(args[1][:, m], features[0])
     assert args[1].flags.f_contiguous
-    assert (kwargs["max_num_threads"], kwargs["max_split_size"]) == (4, m)
+    # the first split's one component is cut into as many chunks as threads beyond two: capped
+    assert (kwargs["max_num_threads"], kwargs["max_split_size"]) == (SOLVER_THREADS, m) == (2, m)
+    assert (
+        _solver_arguments(features, sources, targets, weights, None, config, 1)[1][
+            "max_num_threads"
+        ]
+        == 1
+    )
     assert kwargs["balance_parallel_split"] is False
     assert kwargs["vert_weights"].tolist() == [2.0] * m + [1.0]
 

@@ -49,7 +49,7 @@ from thgs.graph.energy import join_seams, polish
 from thgs.graph.knn import KnnGraph, nearest_neighbors
 from thgs.scene.gaussians import Gaussians
 
-__all__ = ["MIN_BLOCK_SIZE", "PartitionConfig", "partition"]
+__all__ = ["MIN_BLOCK_SIZE", "SOLVER_THREADS", "PartitionConfig", "partition"]
 
 log = logging.getLogger(__name__)
 
@@ -58,6 +58,10 @@ MIN_BLOCK_SIZE = 1000
 
 MAX_COARSEN_LEVELS = 8
 """The most matching passes before the solver (each about halves the vertices)."""
+
+SOLVER_THREADS = 2
+"""The most threads a solve with ``threaded_largest`` runs on: its first split cuts the graph
+into as many chunks as the solver has threads beyond two (:func:`_solver_arguments`)."""
 
 
 @dataclass(frozen=True)
@@ -109,9 +113,10 @@ class PartitionConfig:
             adjacent one, which can be the wrong one: five Gaussians of a table's underside,
             joined to a chair's superpoint through floaters (docs/partition.md).
         threaded_largest: solve a piece that holds more than half of the vertices to solve (a
-            scene of one block, such as synth-small) on the solver's own threads, in a form
-            whose result is the same on any number of them (False, the default: one thread,
-            whatever the piece). Another path to another local minimum: on two cores
+            scene of one block, such as synth-small) on up to :data:`SOLVER_THREADS` of the
+            solver's own threads, in a form whose result does not depend on their number (False,
+            the default: one thread, whatever the piece). Another path to another local minimum,
+            its first split cut into two chunks by breadth-first search: on two cores
             synth-small's builds took 3.3–3.9 s instead of 4.5–6.0 s, and its regions scored
             0.001 / 0.003 / 0.002 lower on sub-parts / parts / objects over ten seeds
             (docs/partition.md). Scenes of several blocks of similar size are unchanged.
@@ -315,11 +320,14 @@ def _solver_arguments(
     What the solver's result depends on in its threads t (pycut-pursuit 0.1.3–0.1.4, read in
     its source and checked): it orders its components by size before each split when t > 1 or
     its ``max_split_size`` S is below its vertex count V, and it cuts a component larger than
-    ``min(S, ⌈(V − 1) / t⌉)`` into chunks when its balancing is on or a component exceeds S.
-    With threads, the graph gets one isolated vertex more (V = m + 1: a component of its own,
-    which no edge joins), S = m and the balancing off: the components are always ordered and
-    never chunked, whatever t. The order is another path to another local minimum than one
-    thread's; neither is better on average (docs/partition.md).
+    ``min(S, (V − 1) // t + 1)`` into chunks when its balancing is on or a component exceeds S.
+    With threads, the graph gets one isolated vertex more (V = m + 1), S = m and the balancing
+    off: the components are always ordered, and only the first split, whose one component holds
+    all V vertices (the solver starts from one component, joined or not), is cut into chunks by
+    breadth-first search: into ⌈V / min(m, m // t + 1)⌉ chunks, two for t = 1 and t = 2 alike
+    but t for larger t. So the solver is given at most :data:`SOLVER_THREADS` threads, and its
+    result is the same on any machine. The order and the two chunks are another path to another
+    local minimum than one thread's (docs/partition.md).
     """
     m = features.shape[0]
     shared = threads is not None
@@ -344,7 +352,7 @@ def _solver_arguments(
         "split_damp_ratio": config.split_damp_ratio,
         "K": config.split_alternatives,
         "verbose": False,
-        "max_num_threads": threads if shared else 1,
+        "max_num_threads": min(threads, SOLVER_THREADS) if shared else 1,
     }
     if shared:
         kwargs |= {"max_split_size": m, "balance_parallel_split": False}
@@ -423,12 +431,13 @@ def _solved(
     cluster (:func:`thgs.build_ray.ray_solve`), or to ``workers`` fresh Python processes
     (:data:`_WORKER`); else they are solved here one by one. Every task is solved on one
     thread, except with ``config.threaded_largest`` one holding more than half of all the
-    vertices, solved in the solver's form that gives the same result on any number of threads:
-    here on ``workers`` threads, in a worker process on the share of them its share of the
-    vertices rounds to, in a Ray task (one CPU) on one. So where a task runs does not change
-    its result. Fresh processes, not a fork of this one (a fork of a process whose OpenMP
-    runtimes, the KD-tree's or torch's, have started threads hangs in the solver) nor
-    multiprocessing's spawn (which runs the caller's main module again in every worker).
+    vertices, solved in the solver's form that gives the same result on one thread or on
+    :data:`SOLVER_THREADS`: here on up to ``workers`` threads, in a worker process on the share
+    of them its share of the vertices rounds to, in a Ray task (one CPU) on one. So where a
+    task runs does not change its result. Fresh processes, not a fork of this one (a fork of a
+    process whose OpenMP runtimes, the KD-tree's or torch's, have started threads hangs in the
+    solver) nor multiprocessing's spawn (which runs the caller's main module again in every
+    worker).
 
     Raises:
         ThgsError: a solver process failed (its error output is in the message), or Ray is
