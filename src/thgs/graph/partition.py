@@ -321,11 +321,13 @@ def _solver_arguments(
     its source and checked): it orders its components by size before each split when t > 1 or
     its ``max_split_size`` S is below its vertex count V, and it cuts a component larger than
     ``min(S, (V − 1) // t + 1)`` into chunks when its balancing is on or a component exceeds S.
-    With threads, the graph gets one isolated vertex more (V = m + 1), S = m and the balancing
-    off: the components are always ordered, and only the first split, whose one component holds
-    all V vertices (the solver starts from one component, joined or not), is cut into chunks by
-    breadth-first search: into ⌈V / min(m, m // t + 1)⌉ chunks, two for t = 1 and t = 2 alike
-    but t for larger t. So the solver is given at most :data:`SOLVER_THREADS` threads: on one
+    With threads, the graph gets one isolated vertex more (V = m + 1), its value beyond every
+    vertex's in every coordinate (with the value of one of them, the solver often left two
+    touching blobs whole, docs/partition.md), S = m and the balancing off: the components are
+    always ordered, and only the first split, whose one component holds all V vertices (the
+    solver starts from one component, joined or not), is cut into chunks by breadth-first
+    search: into ⌈V / min(m, m // t + 1)⌉ chunks, two for t = 1 and t = 2 alike but t for
+    larger t. So the solver is given at most :data:`SOLVER_THREADS` threads: on one
     and on two it gave the same ids in every test (an empirical fact about its other parallel
     loops, not one read in its source). The order and the two chunks are another path to
     another local minimum than one thread's (docs/partition.md).
@@ -336,7 +338,8 @@ def _solver_arguments(
     np.cumsum(np.bincount(sources, minlength=m), out=first_edge[1 : m + 1])
     if shared:
         first_edge[m + 1] = first_edge[m]
-        features = np.concatenate([features, features[:1]])  # the isolated vertex: any value
+        low, high = features.min(axis=0), features.max(axis=0)
+        features = np.concatenate([features, (2 * high - low + 1)[None, :]])  # beyond them all
         if vertex_weights is not None:
             vertex_weights = np.append(vertex_weights, 1.0)
     args = (
