@@ -327,10 +327,10 @@ def _solver_arguments(
     always ordered, and only the first split, whose one component holds all V vertices (the
     solver starts from one component, joined or not), is cut into chunks by breadth-first
     search: into ⌈V / min(m, m // t + 1)⌉ chunks, two for t = 1 and t = 2 alike but t for
-    larger t. So the solver is given at most :data:`SOLVER_THREADS` threads: on one
-    and on two it gave the same ids in every test (an empirical fact about its other parallel
-    loops, not one read in its source). The order and the two chunks are another path to
-    another local minimum than one thread's (docs/partition.md).
+    larger t. So the solver is given at most :data:`SOLVER_THREADS` threads: on one and on two
+    it gave the same ids in every test (an empirical fact about its other parallel loops, not
+    one read in its source). The order and the two chunks are another path to another local
+    minimum than one thread's (docs/partition.md).
     """
     m = features.shape[0]
     shared = threads is not None
