@@ -34,7 +34,7 @@ from thgs.device import resolve_device
 from thgs.errors import InputError
 from thgs.eval import matched_miou, purity
 from thgs.pipeline import FieldConfig, build_field, chosen_field_config
-from thgs.render import BACKENDS, RasterConfig, resolve_backend
+from thgs.render import BACKENDS, resolve_backend
 from thgs.synthetic import OracleConfig, generate_scene, preset
 from thgs.text import MiniLMEncoder
 
@@ -75,16 +75,17 @@ def _variants(args: argparse.Namespace) -> dict[str, tuple[FieldConfig, torch.de
         devices = args.devices if args.devices else present_devices()
         pairs = [(backend, device) for device in devices for backend in args.backends]
     variants = {}
+    chosen = chosen_field_config(settings=args.set)
     for backend, device_name in pairs:
         device = resolve_device(device_name)
-        raster = RasterConfig(backend=backend)
+        raster = replace(chosen.superpoints.lift.raster, backend=backend)  # keeps --set's
         try:
             resolve_backend(raster, device)
         except InputError:
             if args.runs:
                 raise
             continue
-        config = chosen_field_config(settings=args.set)
+        config = chosen
         lift = replace(config.superpoints.lift, raster=raster)
         config = replace(config, superpoints=replace(config.superpoints, lift=lift))
         variants[f"ours {backend} {device}"] = (config, device)

@@ -234,9 +234,8 @@ def test_presets_and_config_checks():
     assert lerf.coarsen_levels == 0
     coarsened = SuperpointConfig(partition=PartitionConfig(coarsen_levels=2))
     assert coarsened.as_reference().partition.coarsen_levels == 0
-    assert not lerf.threaded_largest
-    threaded = SuperpointConfig(partition=PartitionConfig(threaded_largest=True))
-    assert not threaded.as_reference().partition.threaded_largest
+    assert lerf.threaded_largest
+    assert not SuperpointConfig().as_reference().partition.threaded_largest
     bad_settings = (
         {"regularization": -1.0},
         {"split_damp_ratio": 0.0},

@@ -95,7 +95,8 @@ def plane():
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_reweighting_raises_purity_on_noisy_guidance(plane, seed):
     # measured over oracle seeds 0–7 at its default severity 0.5 (docs/partition.md): no
-    # reweighting 0.834 (it ignores the masks), ours and the reference's 0.996–1.000
+    # reweighting 0.855 (it ignores the masks; 0.833 with the plane solved on one thread), ours
+    # and the reference's 0.998–1.000
     scene, hierarchy = plane
     guidance = oracle_views(scene, hierarchy, OracleConfig(seed=seed))
     truth = hierarchy.labels[:, 1]
@@ -104,10 +105,10 @@ def test_reweighting_raises_purity_on_noisy_guidance(plane, seed):
     plain, _ = partition_scene(scene, guidance, none)
     ours, report = partition_scene(scene, guidance, config)
     reference, _ = partition_scene(scene, guidance, config.as_reference())
-    assert purity(plain, truth) < 0.85
+    assert purity(plain, truth) < 0.87
     assert purity(ours, truth) > 0.99
     assert purity(reference, truth) > 0.99
-    assert purity(ours, truth) - purity(plain, truth) > 0.14
+    assert purity(ours, truth) - purity(plain, truth) > 0.12
     assert report.superpoints <= 16 and report.voted_edges > 0.9 * report.edges
 
 
@@ -202,6 +203,10 @@ def test_presets_and_reference_switch():
     reference = lerf.as_reference()
     assert reference.reweight == ReweightConfig.reference()
     assert reference.partition == replace(
-        lerf.partition, weight_scale="reweighted", split_alternatives=2, polish=False
+        lerf.partition,
+        weight_scale="reweighted",
+        split_alternatives=2,
+        polish=False,
+        threaded_largest=False,
     )
     assert reference.lift == lerf.lift and reference.graph == lerf.graph

@@ -114,12 +114,13 @@ class PartitionConfig:
             joined to a chair's superpoint through floaters (docs/partition.md).
         threaded_largest: solve a piece that holds more than half of the vertices to solve (a
             scene of one block, such as synth-small) on up to :data:`SOLVER_THREADS` of the
-            solver's own threads, in a form whose result does not depend on their number (False,
-            the default: one thread, whatever the piece). Another path to another local minimum,
-            its first split cut into two chunks by breadth-first search: on two cores
-            synth-small's builds took 3.3–3.9 s instead of 4.5–6.0 s, and its regions scored
-            0.001 / 0.003 / 0.002 lower on sub-parts / parts / objects over ten seeds
-            (docs/partition.md). Scenes of several blocks of similar size are unchanged.
+            solver's own threads, in a form whose result does not depend on their number (ours
+            True; False solves every piece on one thread, as the reference's settings do).
+            Another path to another local minimum, its first split cut into two chunks by
+            breadth-first search: on two cores synth-small's builds took 3.3–3.9 s instead of
+            4.5–6.0 s, and its regions scored 0.001 / 0.003 / 0.002 lower on sub-parts / parts /
+            objects over ten seeds (docs/partition.md). Scenes of several blocks of similar size
+            are unchanged.
         coarsen_levels: passes of heavy-edge matching before the solver (0, the default: the
             solver sees every Gaussian; at most 8). Each pass joins pairs of neighbours whose
             edge the votes made no lighter and whose join raises the data term by at most half
@@ -142,7 +143,7 @@ class PartitionConfig:
     weight_scale: Literal["graph", "reweighted"] = "graph"
     split_alternatives: int = 6
     polish: bool = True
-    threaded_largest: bool = False
+    threaded_largest: bool = True
     coarsen_levels: int = 0
 
     def __post_init__(self) -> None:
