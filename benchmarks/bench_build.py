@@ -85,9 +85,8 @@ def _variants(args: argparse.Namespace) -> dict[str, tuple[FieldConfig, torch.de
             if args.runs:
                 raise
             continue
-        config = chosen
-        lift = replace(config.superpoints.lift, raster=raster)
-        config = replace(config, superpoints=replace(config.superpoints, lift=lift))
+        lift = replace(chosen.superpoints.lift, raster=raster)
+        config = replace(chosen, superpoints=replace(chosen.superpoints, lift=lift))
         variants[f"ours {backend} {device}"] = (config, device)
     if args.reference:
         variants["reference"] = (FieldConfig().as_reference(), torch.device("cpu"))

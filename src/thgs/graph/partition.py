@@ -117,10 +117,9 @@ class PartitionConfig:
             solver's own threads, in a form whose result does not depend on their number (ours
             True; False solves every piece on one thread, as the reference's settings do).
             Another path to another local minimum, its first split cut into two chunks by
-            breadth-first search: on two cores synth-small's builds took 3.3–3.9 s instead of
-            4.5–6.0 s, and its regions scored 0.001 / 0.003 / 0.002 lower on sub-parts / parts /
-            objects over ten seeds (docs/partition.md). Scenes of several blocks of similar size
-            are unchanged.
+            breadth-first search: on two cores synth-small's builds took 3.7–5.0 s instead of
+            4.7–6.3 s, and its regions scored 0.002 lower on each level over ten seeds
+            (docs/partition.md). Scenes of several blocks of similar size are unchanged.
         coarsen_levels: passes of heavy-edge matching before the solver (0, the default: the
             solver sees every Gaussian; at most 8). Each pass joins pairs of neighbours whose
             edge the votes made no lighter and whose join raises the data term by at most half
