@@ -185,6 +185,45 @@ def test_numba_reuses_prepared_gaussians_until_they_change():
     assert not torch.allclose(after.image, before.image)
 
 
+@pytest.mark.parametrize("kind", ["2dgs", "3dgs"])
+def test_numba_outputs_do_not_depend_on_the_order_its_kernels_hold(monkeypatch, kind):
+    """The numba kernels hold the Gaussians in Z-order of their centres and map every output back:
+    the same bytes as with the Gaussians held in their own order or reversed, equal depths
+    included (three Gaussians duplicated at the end, far from their twins in index and with
+    other features: the order of a tie shows in the image and in the index of the maximum)."""
+    import weakref
+
+    from thgs.render import _numba
+
+    duplicated = torch.cat([torch.arange(60), torch.tensor([4, 20, 33])])
+    gaussians, cam = tiny_scene(kind, n=60, seed=7).select(duplicated), camera()
+    features = torch.from_numpy(np.random.default_rng(7).random((len(gaussians), 3)))
+    pixel_map = torch.from_numpy(np.random.default_rng(8).random((36, 48, 2)))
+    maps = np.random.default_rng(9).integers(-1, 4, size=(2, 6, 8)).repeat(6, 1).repeat(6, 2)
+    config = RasterConfig(backend="numba")
+
+    def outputs() -> list:
+        monkeypatch.setattr(_numba, "_PREPARED", weakref.WeakKeyDictionary())
+        return [
+            project(gaussians, cam, config),
+            render(gaussians, cam, features, config=config),
+            splat_back(gaussians, cam, pixel_map, config=config),
+            splat_labels(gaussians, cam, maps, config=config),
+        ]
+
+    z_order = outputs()
+    assert not np.array_equal(_numba._prepared(gaussians).order, np.arange(len(gaussians)))
+    # a twin is the largest somewhere: held in reverse, a tie going by that order would make it
+    # its duplicate
+    assert bool(torch.isin(z_order[1].max_id, torch.tensor([4, 20, 33])).any())
+    for held in (np.arange, lambda n: np.arange(n)[::-1].copy()):
+        monkeypatch.setattr(_numba, "spatial_order", lambda means, held=held: held(len(means)))
+        for expected, got in zip(z_order, outputs(), strict=True):
+            for name, value in vars(expected).items():
+                if isinstance(value, torch.Tensor):
+                    assert torch.equal(value, getattr(got, name)), (type(expected), name)
+
+
 def test_running_out_of_device_memory_is_an_input_error(monkeypatch):
     from thgs.render import _numba
 

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from thgs._spatial import spatial_order
 from thgs.errors import InputError
 from thgs.scene.gaussians import Gaussians
 
@@ -152,16 +153,24 @@ def nearest_neighbors(
     queries = points if queries is None else queries
     m = queries.shape[0]
     bound = None if np.isinf(radius) else radius
+    # queried in Z-order of their first three coordinates (near queries walk the same branches
+    # of the tree, so memory is read once); each query's answer does not depend on the order
+    order = spatial_order(queries[:, :3]) if queries.shape[1] >= 3 else np.arange(m)
+    ordered = np.ascontiguousarray(queries[order])
     if _PyKDTree is not None:
         squared, index = _PyKDTree(points).query(
-            queries, k=k, distance_upper_bound=bound, sqr_dists=True
+            ordered, k=k, distance_upper_bound=bound, sqr_dists=True
         )
     else:
         distance, index = cKDTree(points).query(
-            queries, k=k, distance_upper_bound=np.inf if bound is None else bound, workers=-1
+            ordered, k=k, distance_upper_bound=np.inf if bound is None else bound, workers=-1
         )
         squared = np.square(distance)
-    return squared.reshape(m, k), index.reshape(m, k).astype(np.int64)
+    squared_out = np.empty((m, k), dtype=squared.dtype)
+    index_out = np.empty((m, k), dtype=np.int64)
+    squared_out[order] = squared.reshape(m, k)
+    index_out[order] = index.reshape(m, k)
+    return squared_out, index_out
 
 
 def knn_graph(gaussians: Gaussians, config: GraphConfig = GraphConfig()) -> KnnGraph:

@@ -3,10 +3,13 @@
 Per view:
 
 1. **Projection**: one compiled pass over the Gaussians with the formulas of
-   :func:`thgs.render.projection.project_torch` (tested against it).
-2. **Binning**: the Gaussians that can contribute, sorted by depth (stable, so ties go by index),
-   are counted into the tiles their α ≥ alpha_min box overlaps; every tile's list is then in
-   depth order without sorting pairs (a counting sort, O(pairs)).
+   :func:`thgs.render.projection.project_torch` (tested against it). The kernels hold the
+   Gaussians in Z-order of their centres (:func:`thgs._spatial.spatial_order`, computed once
+   per Gaussians), so a tile's Gaussians lie near each other in memory; what they return is in
+   the Gaussians' own order, the same bytes as in any other order.
+2. **Binning**: the Gaussians that can contribute, sorted by depth (stable, so ties go by their
+   own index), are counted into the tiles their α ≥ alpha_min box overlaps; every tile's list is
+   then in depth order without sorting pairs (a counting sort, O(pairs)).
 3. **Per tile**: the tile's Gaussians are gathered into contiguous arrays (box, α centre,
    parameters, opacity), and for each pixel row the Gaussians whose box spans that row are listed;
    a pixel walks its row's list front to back: skip α < alpha_min, stop before the Gaussian that
@@ -26,12 +29,14 @@ import math
 import threading
 import weakref
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 
 import numba
 import numpy as np
 import torch
 from torch import Tensor
 
+from thgs._spatial import spatial_order
 from thgs.render.config import RasterConfig
 from thgs.render.outputs import LabelWeights, RenderOutput, SplatBackOutput
 from thgs.render.projection import Projection
@@ -251,8 +256,9 @@ def _depth_order(depths, candidates):  # pragma: no cover - compiled
 
 
 @numba.njit(nogil=True, cache=True)
-def _bin_tiles(depths, bounds, tile_size, tiles_x, tiles_y):  # pragma: no cover - compiled
-    """Per tile, the Gaussians whose box overlaps it, in order of depth (ties by index).
+def _bin_tiles(depths, bounds, inverse, tile_size, tiles_x, tiles_y):  # pragma: no cover - compiled
+    """Per tile, the Gaussians whose box overlaps it, in order of depth, ties by their own index
+    (Gaussian i of the caller is the kernels' ``inverse[i]``).
 
     Returns ``(pairs, start)``: tile t's Gaussians are ``pairs[start[t]:start[t + 1]]``.
     """
@@ -263,7 +269,8 @@ def _bin_tiles(depths, bounds, tile_size, tiles_x, tiles_y):  # pragma: no cover
             count += 1
     candidates = np.empty(count, dtype=np.int64)
     count = 0
-    for g in range(n):
+    for i in range(n):
+        g = inverse[i]
         if bounds[g, 0] <= bounds[g, 1] and bounds[g, 2] <= bounds[g, 3]:
             candidates[count] = g
             count += 1
@@ -687,15 +694,27 @@ def _grown(node_label, node_weight, node_next):  # pragma: no cover - compiled
 
 @numba.njit(nogil=True, cache=True)
 def _label_weights_kernel(
-    pairs, start, tiles_x, tile_size, width, height, kind, view, settings, labels, cells_max
+    pairs,
+    start,
+    tiles_x,
+    tile_size,
+    width,
+    height,
+    kind,
+    view,
+    settings,
+    labels,
+    cells_max,
+    inverse,
 ):  # pragma: no cover - compiled
     """Per (Gaussian, level, label): ``Σ_x w(x)`` over the pixels with that label.
 
     Per tile, each distinct tuple of labels over the levels gets a slot, and every composited
     weight is added to its (local Gaussian, slot) cell; at the end of the tile every cell's weight
     is added, for each level, to a linked list of (label, weight) nodes per (Gaussian, level).
-    Returns the sorted rows and the per-Gaussian weight sums and maxima. A tile whose cells would
-    exceed ``cells_max`` adds each pixel's weights to the lists directly.
+    Returns the rows sorted by the caller's Gaussian index (Gaussian i is the kernels'
+    ``inverse[i]``), and the per-Gaussian weight sums and maxima in the kernels' order. A tile
+    whose cells would exceed ``cells_max`` adds each pixel's weights to the lists directly.
     """
     n = view[0].shape[0]
     levels = labels.shape[0]
@@ -795,7 +814,8 @@ def _label_weights_kernel(
     out_labels = np.empty(total, dtype=np.int64)
     out_weights = np.empty(total)
     row = 0
-    for g in range(n):
+    for index in range(n):
+        g = inverse[index]
         if max_weights[g] == 0.0:
             continue
         for level in range(levels):
@@ -819,78 +839,108 @@ def _label_weights_kernel(
                 row += 1
                 node = node_next[node]
             for k in range(begin, row):
-                out_gaussians[k] = g
+                out_gaussians[k] = index
                 out_levels[k] = level
     return out_gaussians, out_levels, out_labels, out_weights, weight_sums, max_weights
 
 
+@dataclass(frozen=True, eq=False)
+class _Prepared:
+    """What every view's projection needs of the Gaussians, in the kernels' order.
+
+    Attributes:
+        order: [N] int64, the Gaussian at each position of the kernels' arrays (Z-order of the
+            centres).
+        inverse: [N] int64, the position of each Gaussian: ``order[inverse[i]] == i``.
+        arrays: (means [N, 3], rotations [N, 9], scales [N, 2|3], opacities [N]) in float64,
+            in the kernels' order.
+    """
+
+    order: np.ndarray
+    inverse: np.ndarray
+    arrays: tuple[np.ndarray, ...]
+
+
 _PREPARED: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-"""Gaussians → (their state key, :func:`_prepare_kernel`'s arrays and the centres in float64)."""
+"""Gaussians → (their state key, their :class:`_Prepared`)."""
 _PREPARED_LOCK = threading.Lock()
 
 
-def _prepared(gaussians: Gaussians) -> tuple[np.ndarray, ...]:
-    """(means [N, 3], rotations [N, 9], scales [N, 2|3], opacities [N]) in float64, computed
-    once per Gaussians and reused by every view until a tensor is modified in place."""
+def _prepared(gaussians: Gaussians) -> _Prepared:
+    """The Gaussians' :class:`_Prepared`, computed once per Gaussians and reused by every view
+    until a tensor is modified in place."""
     key = gaussians.state_key()
     with _PREPARED_LOCK:
         cached = _PREPARED.get(gaussians)
     if cached is not None and cached[0] == key:
         return cached[1]
 
-    def array(tensor: Tensor) -> np.ndarray:
-        return np.ascontiguousarray(tensor.detach().cpu().double().numpy())
+    means = gaussians.means.detach().cpu().double().numpy()
+    order = spatial_order(means)
+    inverse = np.empty_like(order)
+    inverse[order] = np.arange(len(order))
 
-    means = array(gaussians.means)
-    prepared = (
-        means,
+    def array(tensor: Tensor) -> np.ndarray:
+        return np.ascontiguousarray(tensor.detach().cpu().double().numpy()[order])
+
+    arrays = (
+        np.ascontiguousarray(means[order]),
         *_prepare_kernel(
             array(gaussians.quats), array(gaussians.scales), array(gaussians.opacities)
         ),
     )
+    prepared = _Prepared(order, inverse, arrays)
     with _PREPARED_LOCK:
         _PREPARED[gaussians] = (key, prepared)
     return prepared
 
 
-def _project_arrays(gaussians: Gaussians, camera: Cameras, config: RasterConfig) -> tuple:
+def _project_arrays(prepared: _Prepared, camera: Cameras, kind: int, config: RasterConfig) -> tuple:
+    """:func:`_project_kernel`'s arrays, in the kernels' order."""
     settings = (config.near, config.far, config.alpha_min, config.eps2d, config.filter_inv_square)
     return _project_kernel(
-        *_prepared(gaussians),
+        *prepared.arrays,
         np.ascontiguousarray(camera.viewmats[0].double().numpy()),
         np.ascontiguousarray(camera.Ks[0].double().numpy()),
         int(camera.widths[0]),
         int(camera.heights[0]),
-        _KIND[gaussians.kind],
+        kind,
         settings,
     )
 
 
-def _projection(gaussians: Gaussians, camera: Cameras, arrays: tuple) -> Projection:
-    depths, centers, alpha_centers, params, opacities, valid, bounds, _ = arrays
+def _projection(gaussians: Gaussians, camera: Cameras, config: RasterConfig) -> Projection:
+    prepared = _prepared(gaussians)
+    arrays = _project_arrays(prepared, camera, _KIND[gaussians.kind], config)
+    depths, centers, alpha_centers, params, opacities, valid, bounds, _ = (
+        torch.from_numpy(array[prepared.inverse]) for array in arrays
+    )
     return Projection(
         kind=gaussians.kind,
         width=int(camera.widths[0]),
         height=int(camera.heights[0]),
-        depths=torch.from_numpy(depths),
-        centers=torch.from_numpy(centers),
-        alpha_centers=torch.from_numpy(alpha_centers),
-        params=torch.from_numpy(params),
-        opacities=torch.from_numpy(opacities.copy()),  # the cached array itself otherwise
-        valid=torch.from_numpy(valid),
-        bounds=torch.from_numpy(bounds),
+        depths=depths,
+        centers=centers,
+        alpha_centers=alpha_centers,
+        params=params,
+        opacities=opacities,
+        valid=valid,
+        bounds=bounds,
     )
 
 
 def _kernel_inputs(gaussians: Gaussians, camera: Cameras, config: RasterConfig) -> tuple:
-    """Projection arrays and the arguments every compositing kernel starts with."""
-    arrays = _project_arrays(gaussians, camera, config)
+    """The Gaussians' :class:`_Prepared`, the projection arrays (in the kernels' order) and the
+    arguments every compositing kernel starts with."""
+    prepared = _prepared(gaussians)
+    kind = _KIND[gaussians.kind]
+    arrays = _project_arrays(prepared, camera, kind, config)
     depths, _, alpha_centers, params, opacities, _, bounds, reaches = arrays
     width, height = int(camera.widths[0]), int(camera.heights[0])
     tile_size = config.tile_size
     tiles_x = (width + tile_size - 1) // tile_size
     tiles_y = (height + tile_size - 1) // tile_size
-    pairs, start = _bin_tiles(depths, bounds, tile_size, tiles_x, tiles_y)
+    pairs, start = _bin_tiles(depths, bounds, prepared.inverse, tile_size, tiles_x, tiles_y)
     settings = (
         config.alpha_min,
         config.alpha_max,
@@ -898,8 +948,8 @@ def _kernel_inputs(gaussians: Gaussians, camera: Cameras, config: RasterConfig) 
         config.filter_inv_square,
     )
     view = (alpha_centers, params, opacities, bounds, reaches)
-    kind = _KIND[gaussians.kind]
-    return arrays, (pairs, start, tiles_x, tile_size, width, height, kind, view, settings)
+    inputs = (pairs, start, tiles_x, tile_size, width, height, kind, view, settings)
+    return prepared, arrays, inputs
 
 
 class NumbaBackend:
@@ -917,7 +967,7 @@ class NumbaBackend:
     def project(
         self, gaussians: Gaussians, camera: Cameras, config: RasterConfig, dtype: torch.dtype
     ) -> Projection:
-        return _projection(gaussians, camera, _project_arrays(gaussians, camera, config))
+        return _projection(gaussians, camera, config)
 
     def render(
         self,
@@ -927,15 +977,15 @@ class NumbaBackend:
         config: RasterConfig,
         dtype: torch.dtype,
     ) -> RenderOutput:
-        arrays, inputs = _kernel_inputs(gaussians, camera, config)
-        values = np.ascontiguousarray(features.cpu().double().numpy())
+        prepared, arrays, inputs = _kernel_inputs(gaussians, camera, config)
+        values = np.ascontiguousarray(features.cpu().double().numpy()[prepared.order])
         image, alpha, depth, max_id = _render_arrays(inputs, arrays[0], values)
         out_dtype = features.dtype
         return RenderOutput(
             image=torch.from_numpy(image).to(out_dtype),
             alpha=torch.from_numpy(alpha).to(out_dtype),
             depth=torch.from_numpy(depth).to(out_dtype),
-            max_id=torch.from_numpy(max_id),
+            max_id=torch.from_numpy(np.where(max_id >= 0, prepared.order[max_id], -1)),
         )
 
     def splat_back(
@@ -947,21 +997,22 @@ class NumbaBackend:
         config: RasterConfig,
         dtype: torch.dtype,
     ) -> SplatBackOutput:
-        arrays, inputs = _kernel_inputs(gaussians, camera, config)
+        prepared, arrays, inputs = _kernel_inputs(gaussians, camera, config)
         height, width = pixel_map.shape[:2]
         values = np.ascontiguousarray(pixel_map.cpu().double().numpy())
         keep = np.ones((height, width), dtype=np.bool_) if mask is None else mask.numpy()
-        feature_sums, weight_sums, max_weights, counts = _splat_back_kernel(
-            *inputs, values, np.ascontiguousarray(keep)
+        sums = _splat_back_kernel(*inputs, values, np.ascontiguousarray(keep))
+        feature_sums, weight_sums, max_weights, counts, depths, centers = (
+            torch.from_numpy(array[prepared.inverse]) for array in (*sums, *arrays[:2])
         )
         out_dtype = pixel_map.dtype
         return SplatBackOutput(
-            feature_sums=torch.from_numpy(feature_sums).to(out_dtype),
-            weight_sums=torch.from_numpy(weight_sums).to(out_dtype),
-            max_weights=torch.from_numpy(max_weights).to(out_dtype),
-            pixel_counts=torch.from_numpy(counts),
-            depths=torch.from_numpy(arrays[0]).to(out_dtype),
-            centers=torch.from_numpy(arrays[1]).to(out_dtype),
+            feature_sums=feature_sums.to(out_dtype),
+            weight_sums=weight_sums.to(out_dtype),
+            max_weights=max_weights.to(out_dtype),
+            pixel_counts=counts,
+            depths=depths.to(out_dtype),
+            centers=centers.to(out_dtype),
         )
 
     def label_weights(
@@ -972,17 +1023,18 @@ class NumbaBackend:
         config: RasterConfig,
         dtype: torch.dtype,
     ) -> LabelWeights:
-        arrays, inputs = _kernel_inputs(gaussians, camera, config)
+        prepared, arrays, inputs = _kernel_inputs(gaussians, camera, config)
         maps = np.ascontiguousarray(label_maps.numpy().astype(np.int64, copy=False))
         g, levels, labels, weights, weight_sums, max_weights = _label_weights_kernel(
-            *inputs, maps, _LOCAL_SLOTS_MAX
+            *inputs, maps, _LOCAL_SLOTS_MAX, prepared.inverse
         )
+        inverse = prepared.inverse
         return LabelWeights(
             gaussians=torch.from_numpy(g),
             levels=torch.from_numpy(levels),
             labels=torch.from_numpy(labels),
             weights=torch.from_numpy(weights),
-            weight_sums=torch.from_numpy(weight_sums),
-            max_weights=torch.from_numpy(max_weights),
-            depths=torch.from_numpy(arrays[0]),
+            weight_sums=torch.from_numpy(weight_sums[inverse]),
+            max_weights=torch.from_numpy(max_weights[inverse]),
+            depths=torch.from_numpy(arrays[0][inverse]),
         )
