@@ -1,8 +1,8 @@
 """A cache-friendly order of points: along a Z-order (Morton) curve through their bounding box.
 
-Work that visits points by where they are (a tile's Gaussians, a KD-tree query's neighbours)
-reads far less memory when points near in space are near in the arrays. The order is a pure
-function of the coordinates, so every use of it is deterministic.
+Work that visits points by where they are (a tile's Gaussians, a KD-tree query's neighbours, a
+pick's cells) reads far less memory when points near in space are near in the arrays. The order
+is a pure function of the coordinates, so every use of it is deterministic.
 """
 
 from __future__ import annotations
@@ -12,11 +12,11 @@ import numpy as np
 __all__ = ["spatial_order"]
 
 _BITS = 21
-"""Bits per axis: 3 × 21 fit one uint64 code."""
+"""Quantization per axis of the Morton code (3 × 21 bits fit in 64)."""
 
 
-def _spread(values: np.ndarray) -> np.ndarray:
-    """The 21 low bits of each uint64 spread to every third bit (bit i → bit 3i)."""
+def _spread_bits(values: np.ndarray) -> np.ndarray:
+    """[N] uint64 < 2²¹ with bit i moved to bit 3i."""
     v = values & np.uint64(0x1FFFFF)
     for shift, mask in (
         (32, 0x1F00000000FFFF),
@@ -30,22 +30,22 @@ def _spread(values: np.ndarray) -> np.ndarray:
 
 
 def spatial_order(points: np.ndarray) -> np.ndarray:
-    """[N] int64 indices of ``points`` [N, 3] in Z-order over their bounding box, each axis
-    quantized to 2²¹ steps; ties (points in one cell) keep their index order. A point with a
-    non-finite coordinate counts as the lower corner of the finite points' box."""
+    """[N] int64 indices of ``points`` [N, 3] in Z-order, quantized in 2²¹ steps on the cube
+    around the finite points' bounding box (one step for all axes, so that cells are about as
+    long as wide); ties (points in one cell) keep their index order. A point with a non-finite
+    coordinate counts as the box's lower corner."""
     points = np.asarray(points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 3:
         raise ValueError(f"points must be [N, 3], got {points.shape}")
-    if len(points) == 0:
-        return np.zeros(0, dtype=np.int64)
     finite = np.isfinite(points).all(axis=1)
     kept = points[finite]
-    low = kept.min(axis=0) if len(kept) else np.zeros(3)
-    high = kept.max(axis=0) if len(kept) else np.zeros(3)
-    steps = float((1 << _BITS) - 1)
-    extent = np.where(high > low, high - low, 1.0)
-    cells = np.where(finite[:, None], (points - low) * (steps / extent), 0.0)
-    cells = np.clip(cells, 0.0, steps).astype(np.uint64)
-    codes = _spread(cells[:, 0]) | _spread(cells[:, 1]) << np.uint64(1)
-    codes |= _spread(cells[:, 2]) << np.uint64(2)
+    if len(kept) == 0:
+        return np.arange(len(points), dtype=np.int64)
+    low = kept.min(axis=0)
+    span = max(float((kept.max(axis=0) - low).max()), np.finfo(np.float64).tiny)
+    steps = np.where(finite[:, None], (points - low) / span * (2**_BITS - 1), 0.0)
+    quantized = np.clip(steps, 0, 2**_BITS - 1).astype(np.uint64)
+    codes = np.zeros(len(points), dtype=np.uint64)
+    for axis in range(3):
+        codes |= _spread_bits(quantized[:, axis]) << np.uint64(axis)
     return np.argsort(codes, kind="stable").astype(np.int64)

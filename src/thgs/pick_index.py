@@ -52,6 +52,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from thgs._spatial import spatial_order
 from thgs.errors import InputError
 from thgs.render import RasterConfig, resolve_backend
 from thgs.scene import Cameras, Gaussians
@@ -59,9 +60,6 @@ from thgs.scene import Cameras, Gaussians
 __all__ = ["PickIndex", "check_pixel"]
 
 logger = logging.getLogger(__name__)
-
-_MORTON_BITS = 21
-"""Quantization per axis of the Morton code (3 × 21 bits fit in 64)."""
 
 _LOG_SLACK = 1e-6
 """Added to ``ln(o / alpha_min)``: the renderer lets σ exceed that reach by 1e-9 (rounding)."""
@@ -93,33 +91,6 @@ def check_pixel(camera: Cameras, pixel: tuple[int, int]) -> tuple[int, int]:
     if not (0 <= x < width and 0 <= y < height):
         raise InputError(camera.stems[0], f"pixel ({x}, {y}) is outside the {width}×{height} image")
     return x, y
-
-
-def _spread_bits(values: np.ndarray) -> np.ndarray:
-    """[N] uint64 < 2²¹ with bit i moved to bit 3i."""
-    v = values & np.uint64(0x1FFFFF)
-    for shift, mask in (
-        (32, 0x1F00000000FFFF),
-        (16, 0x1F0000FF0000FF),
-        (8, 0x100F00F00F00F00F),
-        (4, 0x10C30C30C30C30C3),
-        (2, 0x1249249249249249),
-    ):
-        v = (v | (v << np.uint64(shift))) & np.uint64(mask)
-    return v
-
-
-def _morton_codes(points: np.ndarray) -> np.ndarray:
-    """[N] uint64 Z-curve codes of [N, 3] points quantized on the cube around their bounding box
-    (one step for all axes, so that cells are about as long as wide)."""
-    low = points.min(axis=0)
-    span = max(float((points.max(axis=0) - low).max()), np.finfo(np.float64).tiny)
-    steps = (points - low) / span * (2**_MORTON_BITS - 1)
-    quantized = np.clip(steps, 0, 2**_MORTON_BITS - 1).astype(np.uint64)
-    codes = np.zeros(len(points), dtype=np.uint64)
-    for axis in range(3):
-        codes |= _spread_bits(quantized[:, axis]) << np.uint64(axis)
-    return codes
 
 
 @dataclass(frozen=True)
@@ -255,7 +226,7 @@ class PickIndex:
         means = gaussians.means.detach().to("cpu", torch.float64).numpy()
         n = len(means)
         # one cell needs no order (every member is tested): a one-off pick skips the sort
-        order = np.argsort(_morton_codes(means), kind="stable") if n > cell_size else np.arange(n)
+        order = spatial_order(means) if n > cell_size else np.arange(n)
         index = torch.from_numpy(order).to(gaussians.device)
         scales = torch.exp(gaussians.scales.detach()[index].to("cpu", torch.float64)).amax(dim=1)
         opacities = torch.sigmoid(gaussians.opacities.detach()[index].to("cpu", torch.float64))

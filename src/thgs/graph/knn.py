@@ -156,7 +156,7 @@ def nearest_neighbors(
     # queried in Z-order of their first three coordinates (near queries walk the same branches
     # of the tree, so memory is read once); each query's answer does not depend on the order
     order = spatial_order(queries[:, :3]) if queries.shape[1] >= 3 else np.arange(m)
-    ordered = np.ascontiguousarray(queries[order])
+    ordered = queries[order]
     if _PyKDTree is not None:
         squared, index = _PyKDTree(points).query(
             ordered, k=k, distance_upper_bound=bound, sqr_dists=True

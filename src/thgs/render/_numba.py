@@ -881,10 +881,10 @@ def _prepared(gaussians: Gaussians) -> _Prepared:
     inverse[order] = np.arange(len(order))
 
     def array(tensor: Tensor) -> np.ndarray:
-        return np.ascontiguousarray(tensor.detach().cpu().double().numpy()[order])
+        return tensor.detach().cpu().double().numpy()[order]  # a C-contiguous copy
 
     arrays = (
-        np.ascontiguousarray(means[order]),
+        means[order],
         *_prepare_kernel(
             array(gaussians.quats), array(gaussians.scales), array(gaussians.opacities)
         ),
@@ -978,7 +978,7 @@ class NumbaBackend:
         dtype: torch.dtype,
     ) -> RenderOutput:
         prepared, arrays, inputs = _kernel_inputs(gaussians, camera, config)
-        values = np.ascontiguousarray(features.cpu().double().numpy()[prepared.order])
+        values = features.cpu().double().numpy()[prepared.order]
         image, alpha, depth, max_id = _render_arrays(inputs, arrays[0], values)
         out_dtype = features.dtype
         return RenderOutput(
